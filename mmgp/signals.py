@@ -1,0 +1,114 @@
+"""Differentiation, resampling and time-block splits of logged signals.
+
+Velocities and accelerations are estimated from positions with local polynomial (Savitzky-Golay)
+fits, evaluated on the actual, possibly jittered, time stamps: the sample rate sets the window,
+so a log at 20 Hz and a log at 1 kHz both get a window of about the same duration in seconds.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from .io import InputError, RobotLog
+
+
+@dataclass(frozen=True)
+class SavitzkyGolay:
+    """Savitzky-Golay differentiator.
+
+    ``window_s``: window length in seconds (None: ``max(5 samples, 0.05 s)``, odd, capped so it
+    fits the log); ``order``: polynomial order (3 keeps accelerations unbiased at turning points).
+    Non-uniform time stamps are resampled to the median step, differentiated, and interpolated back.
+    """
+
+    window_s: float | None = None
+    order: int = 3
+
+    def window_samples(self, dt: float, T: int) -> int:
+        w_s = self.window_s if self.window_s is not None else max(5 * dt, 0.05)
+        w = int(round(w_s / dt))
+        w = max(w, self.order + 2)
+        w = min(w, T if T % 2 == 1 else T - 1)
+        if w % 2 == 0:
+            w += 1
+        if w > T:
+            w -= 2
+        return w
+
+    def __call__(self, t: np.ndarray, x: np.ndarray, deriv: int) -> np.ndarray:
+        """Derivative ``deriv`` (1 or 2) of ``x`` (T, n) sampled at ``t`` (T,); same shape."""
+        t = np.asarray(t, dtype=np.float64)
+        x = np.asarray(x, dtype=np.float64)
+        T = t.shape[0]
+        dt = float(np.median(np.diff(t)))
+        uniform = np.allclose(np.diff(t), dt, rtol=1e-3, atol=1e-9)
+        if uniform:
+            tu, xu = t, x
+        else:
+            tu = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt)) + 1)
+            xu = np.stack([np.interp(tu, t, x[:, j]) for j in range(x.shape[1])], axis=1)
+        w = self.window_samples(dt, tu.shape[0])
+        if w <= self.order:
+            raise InputError(f"too few samples ({T}) to differentiate with a polynomial of order {self.order}")
+        d = savgol_filter(xu, w, self.order, deriv=deriv, delta=dt, axis=0, mode="interp")
+        if uniform:
+            return d
+        return np.stack([np.interp(t, tu, d[:, j]) for j in range(x.shape[1])], axis=1)
+
+
+def complete_derivatives(log: RobotLog, differentiator: SavitzkyGolay | None = None) -> RobotLog:
+    """Fill in ``dq``/``ddq`` when the log lacks them. ``ddq`` comes from ``q`` directly
+    (one smoothing pass), not from a differentiated ``dq``, unless only ``dq`` was logged."""
+    diff = differentiator or SavitzkyGolay()
+    dq, ddq = log.dq, log.ddq
+    dq_est = ddq_est = False
+    if dq is None:
+        dq = diff(log.t, log.q, 1)
+        dq_est = True
+    if ddq is None:
+        ddq = diff(log.t, log.q, 2) if dq_est else diff(log.t, dq, 1)
+        ddq_est = True
+    return log.replace(dq=dq, ddq=ddq, dq_estimated=log.dq_estimated or dq_est,
+                       ddq_estimated=log.ddq_estimated or ddq_est)
+
+
+def downsample(log: RobotLog, rate_hz: float) -> RobotLog:
+    """Keep about ``rate_hz`` samples per second by picking the sample nearest each new tick.
+
+    Picking (rather than averaging) keeps every kept row a real measurement; derivatives should
+    be completed *before* downsampling so they benefit from the full rate.
+    """
+    if rate_hz <= 0:
+        raise InputError(f"target rate must be positive, got {rate_hz}")
+    t = log.t
+    ticks = np.arange(t[0], t[-1] + 1e-12, 1.0 / rate_hz)
+    idx = np.unique(np.clip(np.searchsorted(t, ticks), 0, len(t) - 1))
+    return log.subset(idx)
+
+
+def time_block_folds(T: int, n_folds: int = 5, gap: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Contiguous time blocks as (train_idx, test_idx) pairs.
+
+    Neighbouring samples are nearly identical, so random splits leak; ``gap`` samples on each
+    side of the test block are dropped from training to stop leakage through the smoother window.
+    """
+    if n_folds < 2 or n_folds > T:
+        raise ValueError(f"n_folds must be in [2, {T}]")
+    edges = np.linspace(0, T, n_folds + 1).round().astype(int)
+    folds = []
+    for k in range(n_folds):
+        lo, hi = edges[k], edges[k + 1]
+        test = np.arange(lo, hi)
+        keep = np.ones(T, bool)
+        keep[max(0, lo - gap):min(T, hi + gap)] = False
+        folds.append((np.flatnonzero(keep), test))
+    return folds
+
+
+def features(log: RobotLog) -> np.ndarray:
+    """GP inputs ``[q, dq, ddq]`` of shape (T, 3n)."""
+    if log.dq is None or log.ddq is None:
+        raise ValueError("complete_derivatives() must run first")
+    return np.concatenate([log.q, log.dq, log.ddq], axis=1)
