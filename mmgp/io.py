@@ -297,11 +297,23 @@ def write_table(path: str | os.PathLike, df: pd.DataFrame, metadata: dict | None
                 merged.update({k.encode(): str(v).encode() for k, v in metadata.items()})
                 table = table.replace_schema_metadata(merged)
             pq.write_table(table, tmp)
+        os.chmod(tmp, _default_file_mode())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _default_file_mode() -> int:
+    # mkstemp/mkdtemp create owner-only entries; outputs get the usual umask-derived mode instead.
+    return 0o666 & ~_umask()
 
 
 @contextlib.contextmanager
@@ -318,6 +330,7 @@ def atomic_output_dir(out: str | os.PathLike, *, force: bool = False) -> Iterato
         raise InputError("--out exists and is not empty (use --force to replace it)", file=out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial."))
+    os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
     except BaseException:
@@ -340,6 +353,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+        os.chmod(tmp, _default_file_mode())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

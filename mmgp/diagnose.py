@@ -1,0 +1,764 @@
+"""Sim-vs-real diagnosis: which physical effects is the nominal model missing, where, how large.
+
+Pipeline (``diagnose``):
+
+1. *Locate*: residual ``r = tau - tau_rbd(q, dq, ddq)`` per joint; where it concentrates (near
+   zero velocity, high load, position/acceleration ranges, time spans).
+2. *Separate*: intermittent external pushes are flagged (multimodal learner ``mmgp.em`` when
+   asked for, else a robust chi-square scan of the whitened residual) and left out of effect fitting.
+3. *Name*: every candidate effect of ``mmgp.effects`` is a few regressor columns. Effects are
+   chosen by forward selection on time-block cross-validation with the one-standard-error rule
+   (on paired fold differences): a model is kept only if no smaller model on the path is within
+   one standard error of the best held-out error. Effects whose physical sign is violated
+   (negative friction, mass, inertia, stiffness) are not admissible. No magnitude threshold.
+4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
+   GP (``mmgp.gp.ExactGP``) on what is left; held-out normalised MSE per joint at three stages.
+5. *Tell*: findings per CONTRACT section 2/3, a Markdown report and residual plots.
+
+Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field, asdict
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from . import effects as fx
+from .io import RobotLog
+
+STAGES = ("nominal", "with_physics", "with_physics_and_gp")
+
+_UNITS = {"tau_c": "N*m", "b": "N*m*s/rad", "beta": "", "inertia": "kg*m^2", "k": "N*m/rad",
+          "q0": "rad", "offset": None, "mass": "kg", "com": "m"}
+_LABEL = {"coulomb_friction": "Coulomb friction", "viscous_friction": "viscous friction",
+          "load_dependent_friction": "load-dependent friction", "armature": "armature (rotor inertia)",
+          "joint_spring": "a joint spring", "encoder_offset": "an encoder offset",
+          "torque_offset": "a torque-sensor offset", "payload": "a payload"}
+
+
+@dataclass
+class DiagnoseConfig:
+    """Settings of :func:`diagnose`.
+
+    n_folds: time blocks for cross-validation (selection, uncertainty and the stage figures).
+    se_rule: the "k standard errors" of the selection rule (1.0 is the classic rule).
+    effects: candidate effect names (CONTRACT section 3); None = all.
+    payload_links: "auto" or a list of link indices (0-based, the link joint i moves).
+    separate: "auto" (robust scan), "em" (mmgp.em.MultimodalSEM), or "none".
+    gp: fit the third stage. gp_points: training points per fold for that GP.
+    max_samples: longer logs are thinned evenly to this many samples (runtime bound).
+    sign_noise_factor: v_s = this times the velocity noise (smooth sign of Coulomb friction).
+    filter: low-pass residual and regressor columns alike (parallel filtering) at a cutoff set
+        by the trajectory's bandwidth, so noise in estimated accelerations does not bias the fit.
+    plots: write PNGs with ``write``.
+    """
+
+    n_folds: int = 8
+    se_rule: float = 1.0
+    effects: Sequence[str] | None = None
+    payload_links: Sequence[int] | str = "auto"
+    separate: str = "auto"
+    gp: bool = True
+    gp_points: int = 800
+    max_samples: int = 6000
+    sign_noise_factor: float = 3.0
+    plots: bool = True
+    max_steps: int | None = None
+    filter: bool = True
+    seed: int = 0
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "DiagnoseConfig":
+        if d is None:
+            return cls()
+        if isinstance(d, cls):
+            return d
+        known = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
+        return cls(**known)
+
+
+# --------------------------------------------------------------------------------------------
+# Cross-validated forward selection on per-fold Gram matrices
+# --------------------------------------------------------------------------------------------
+
+class FoldGrams:
+    """Sufficient statistics of weighted least squares per fold and joint.
+
+    ``A``: (T, n, P) atom columns, ``r``: (T, n) residual, ``use``: (T,) bool samples to use,
+    ``folds``: list of (train_idx, test_idx). Stores per-fold train/test Grams (K, n, P, P),
+    cross terms (K, n, P) and sums of squares (K, n).
+    """
+
+    def __init__(self, A: np.ndarray, r: np.ndarray, use: np.ndarray, folds):
+        T, n, P = A.shape
+        K = len(folds)
+        self.K, self.n, self.P = K, n, P
+
+        def gram(idx):
+            G = np.empty((n, P, P))
+            c = np.empty((n, P))
+            for j in range(n):
+                Aj = A[idx, j, :]
+                G[j] = Aj.T @ Aj
+                c[j] = Aj.T @ r[idx, j]
+            return G, c, (r[idx] ** 2).sum(0)
+
+        idx_all = np.flatnonzero(use)
+        self.Gall, self.call, self.yall = gram(idx_all)
+        self.Gte = np.zeros((K, n, P, P))
+        self.cte = np.zeros((K, n, P))
+        self.yte = np.zeros((K, n))
+        self.Gtr = np.zeros((K, n, P, P))
+        self.ctr = np.zeros((K, n, P))
+        self.ytr = np.zeros((K, n))
+        self.nte = np.zeros(K)
+        for k, (tr, te) in enumerate(folds):
+            te_u = te[use[te]]
+            self.Gte[k], self.cte[k], self.yte[k] = gram(te_u)
+            # train = all minus (test block and the gaps around it): only the short excluded
+            # stretch is summed, so K folds cost about two full Gram matrices
+            excl = np.ones(T, bool)
+            excl[tr] = False
+            Ge, ce, ye = gram(np.flatnonzero(excl & use))
+            self.Gtr[k], self.ctr[k], self.ytr[k] = self.Gall - Ge, self.call - ce, self.yall - ye
+            self.nte[k] = len(te_u)
+
+    @staticmethod
+    def _solve(G, c):
+        # tiny ridge relative to the diagonal: keeps exactly collinear atoms from blowing up
+        d = np.diag(G).copy()
+        reg = 1e-10 * (d.max() if d.size else 1.0) + 1e-300
+        try:
+            return np.linalg.solve(G + reg * np.eye(len(c)), c)
+        except np.linalg.LinAlgError:
+            return np.linalg.lstsq(G, c, rcond=None)[0]
+
+    def fit(self, S: Sequence[int], w: np.ndarray, fold: int | None = None) -> np.ndarray:
+        """Weighted LS coefficients of atoms ``S`` on all data or on a fold's training part."""
+        S = list(S)
+        if not S:
+            return np.zeros(0)
+        if fold is None:
+            G, c = self.Gall, self.call
+        else:
+            G, c = self.Gtr[fold], self.ctr[fold]
+        Gw = np.einsum("j,jpq->pq", w, G[:, S][:, :, S])
+        cw = np.einsum("j,jp->p", w, c[:, S])
+        return self._solve(Gw, cw)
+
+    def cv_errors(self, S: Sequence[int], w: np.ndarray) -> np.ndarray:
+        """Held-out sum of squared errors (K, n) of the model with atoms ``S``."""
+        S = list(S)
+        err = self.yte.copy()
+        if not S:
+            return err
+        for k in range(self.K):
+            th = self.fit(S, w, k)
+            Gs = self.Gte[k][:, S][:, :, S]
+            cs = self.cte[k][:, S]
+            err[k] = self.yte[k] - 2 * cs @ th + np.einsum("p,jpq,q->j", th, Gs, th)
+        return err
+
+    def fold_coefficients(self, S: Sequence[int], w: np.ndarray) -> np.ndarray:
+        return np.array([self.fit(S, w, k) for k in range(self.K)])
+
+
+@dataclass
+class PathStep:
+    effects: list  # list[fx.Effect]
+    cv_mean: float
+    cv_folds: np.ndarray
+
+
+class ForwardCVSelector:
+    """Forward selection of effects with time-block CV and the one-standard-error rule.
+
+    ``fit(effects, keys, grams, w)``: ``effects`` the candidate list, ``keys`` the atom keys
+    indexing the Gram matrices, ``w`` (n,) joint weights (inverse noise variance).
+    Learned: ``path_`` (list of PathStep), ``chosen_step_``, ``selected_`` (effects).
+    """
+
+    def __init__(self, se_rule: float = 1.0, max_steps: int | None = None):
+        self.se_rule = se_rule
+        self.max_steps = max_steps
+
+    @staticmethod
+    def _atoms(effs, keys_index):
+        S = []
+        for e in effs:
+            for a in e.atoms():
+                i = keys_index[a]
+                if i not in S:
+                    S.append(i)
+        return S
+
+    @staticmethod
+    def _admissible(effs, S, th, keys):
+        pos = {keys[i]: v for i, v in zip(S, th)}
+        for e in effs:
+            for a in e.nonneg:
+                if pos[a] < 0:
+                    return False
+        return True
+
+    def fit(self, effects, keys, grams: FoldGrams, w: np.ndarray) -> "ForwardCVSelector":
+        keys_index = {a: i for i, a in enumerate(keys)}
+        chosen: list = []
+        e0 = grams.cv_errors([], w) @ w
+        path = [PathStep([], float(e0.mean()), e0)]
+        max_steps = self.max_steps or len(effects)
+        best = path[0].cv_mean
+        stale = 0
+        while len(chosen) < max_steps:
+            S0 = self._atoms(chosen, keys_index)
+            cand = []
+            for e in effects:
+                if e in chosen:
+                    continue
+                new = [keys_index[a] for a in e.atoms() if keys_index[a] not in S0]
+                if not new:
+                    continue  # nested in what is already chosen (e.g. Coulomb inside load-dependent)
+                effs = chosen + [e]
+                S = S0 + new
+                th = grams.fit(S, w)
+                if not self._admissible(effs, S, th, keys):
+                    continue
+                ef = grams.cv_errors(S, w) @ w
+                cand.append((float(ef.mean()), e, ef))
+            if not cand:
+                break
+            m, e, ef = min(cand, key=lambda c: c[0])
+            chosen = chosen + [e]
+            path.append(PathStep(list(chosen), m, ef))
+            if m < best:
+                best, stale = m, 0
+            else:
+                stale += 1
+                if stale >= 2:  # two steps without improvement: the path has turned
+                    break
+        ib = int(np.argmin([p.cv_mean for p in path]))
+        chosen_step = ib
+        for i in range(ib + 1):
+            d = path[i].cv_folds - path[ib].cv_folds
+            se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else 0.0
+            if d.mean() <= self.se_rule * se:
+                chosen_step = i
+                break
+        self.path_ = path
+        self.chosen_step_ = chosen_step
+        self.selected_ = list(path[chosen_step].effects)
+        return self
+
+
+def lowpass_for(t: np.ndarray, dq: np.ndarray, *, power: float = 0.999, factor: float = 2.0):
+    """Zero-phase Butterworth low-pass matched to the motion: cutoff ``factor`` times the frequency
+    below which ``power`` of the velocity's *signal* power lies (the white-noise floor, the median
+    power of the top half of the band, is subtracted first), capped below Nyquist.
+
+    Filtering the torque residual and every regressor column with the same linear filter keeps
+    the linear-in-parameters relation while removing the wide-band noise that differentiated
+    accelerations and torque sensors add (errors in the regressors would bias the fit).
+    Returns (filter function acting on axis 0, cutoff in Hz or None when no filtering applies).
+    """
+    from scipy.signal import butter, sosfiltfilt
+
+    T = len(t)
+    dt = float(np.median(np.diff(t)))
+    fs = 1.0 / dt
+    x = dq - dq.mean(0)
+    # a Hann taper: without it the jump between the log's ends leaks a 1/f^2 tail over the band
+    x = x * np.hanning(T)[:, None]
+    P = np.abs(np.fft.rfft(x, axis=0)) ** 2
+    f = np.fft.rfftfreq(T, dt)
+    floor = np.median(P[f > 0.25 * fs], axis=0) if (f > 0.25 * fs).sum() > 5 else np.zeros(P.shape[1])
+    P = np.clip(P - floor, 0, None)
+    P = (P / np.maximum(P.sum(0), 1e-300)).sum(1)  # every joint counts alike
+    cum = np.cumsum(P) / max(P.sum(), 1e-300)
+    f_p = float(f[min(np.searchsorted(cum, power), len(f) - 1)])
+    f_c = factor * max(f_p, 2.0 / (T * dt))
+    if f_c >= 0.4 * fs or T < 60:
+        return (lambda a: a), None
+    sos = butter(4, f_c / (0.5 * fs), output="sos")
+    # long even (mirror) padding of two cutoff periods: odd padding would pin the ends to a single
+    # noisy sample; any padding is linear, so residual and columns stay consistent
+    pad = int(min(T - 1, round(2.0 * fs / f_c)))
+    return (lambda a: sosfiltfilt(sos, a, axis=0, padtype="even", padlen=pad)), f_c
+
+
+# --------------------------------------------------------------------------------------------
+# Separation of pushes
+# --------------------------------------------------------------------------------------------
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None, alpha: float = 0.01) -> tuple[np.ndarray, dict]:
+    """Flag samples where the (low-passed) residual ``e`` (T, n) is too large to be noise.
+
+    Each joint is scaled by a robust (MAD) noise level; the sum of squares over joints is
+    chi-square(n) under "no push" (filtering makes the residual close to Gaussian). The threshold
+    is the chi-square quantile at the Bonferroni level ``alpha / T_eff``, with ``T_eff`` the
+    number of independent samples the filter leaves (``2 f_c`` per second). Flagged stretches are
+    widened to where the statistic returns to its 99% noise band. Returns mask (T,) and summary.
+    """
+    from scipy.stats import chi2
+
+    T, n = e.shape
+    med = np.median(e, 0)
+    s = 1.4826 * np.median(np.abs(e - med), 0) + 1e-300
+    z2 = (((e - med) / s) ** 2).sum(1)
+    dur = float(t[-1] - t[0]) if T > 1 else 1.0
+    T_eff = max(1.0, min(T, 2.0 * f_c * dur)) if f_c else float(T)
+    thr = float(chi2.ppf(1 - alpha / T_eff, n))
+    core = z2 > thr
+    mask = core.copy()
+    if core.any():
+        band = z2 > chi2.ppf(0.99, n)
+        for a, b in _runs(band):
+            if core[a:b].any():
+                mask[a:b] = True
+    spans = [(float(t[a]), float(t[b - 1])) for a, b in _runs(mask)]
+    return mask, {"threshold": thr, "effective_samples": T_eff, "spans": spans}
+
+
+# --------------------------------------------------------------------------------------------
+# The result
+# --------------------------------------------------------------------------------------------
+
+def _fmt_num(x: float, s: float | None = None) -> str:
+    if s is None or not np.isfinite(s):
+        return f"{x:.3g}"
+    return f"{x:.3g} +/- {s:.2g}"
+
+
+@dataclass
+class DiagnosisResult:
+    """Findings (CONTRACT section 2), held-out fit per stage, residual locations.
+
+    ``findings``: list of dicts with ``effect``, ``joint`` or ``link``, ``params``, ``evidence``,
+    ``explanation``; ``fit``: {stage: {"nmse": {joint: value}, "mean_nmse": value}};
+    ``location``: per joint, where the nominal residual concentrates.
+    """
+
+    findings: list
+    fit: dict
+    location: dict
+    joint_names: list
+    info: dict = field(default_factory=dict)
+    _plot_data: dict | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        return {"findings": self.findings, "fit": self.fit, "location": self.location, "info": self.info}
+
+    def to_json(self, indent: int = 2) -> str:
+        return json.dumps(_jsonable(self.to_dict()), indent=indent)
+
+    def report_markdown(self) -> str:
+        lines = ["# Sim-vs-real diagnosis", ""]
+        effects = [f for f in self.findings if f["effect"] not in ("external_disturbance", "mode_switch")]
+        if not effects:
+            lines.append("Nothing is missing: no candidate effect improves the held-out (time-block "
+                         "cross-validated) error by more than one standard error over the nominal model.")
+        else:
+            lines.append("## Findings")
+            lines.append("")
+            for f in self.findings:
+                lines.append(f"- {f['explanation']}")
+        other = [f for f in self.findings if f["effect"] in ("external_disturbance", "mode_switch")]
+        if other and not effects:
+            lines.append("")
+            for f in other:
+                lines.append(f"- {f['explanation']}")
+        lines += ["", "## Held-out normalised MSE per joint (time-block cross-validation)", "",
+                  "| joint | " + " | ".join(STAGES) + " |", "|---|" + "---|" * len(STAGES)]
+        for jn in self.joint_names:
+            row = [f"{self.fit[s]['nmse'].get(jn, float('nan')):.4g}" if s in self.fit else "-" for s in STAGES]
+            lines.append(f"| {jn} | " + " | ".join(row) + " |")
+        lines += ["", "## Where the nominal residual concentrates", ""]
+        for jn, loc in self.location.items():
+            lines.append(f"- {jn}: residual RMS {loc['rms']:.3g} N*m ({100 * loc['fraction_of_torque_rms']:.1f}% "
+                         f"of the torque RMS); largest in {loc['where']} ({loc['ratio']:.2f}x the overall RMS)")
+        lines += ["", "## Method", "",
+                  f"Candidates: {self.info.get('n_candidates')} effects. Forward selection on {self.info.get('n_folds')} "
+                  "time blocks, one-standard-error rule on paired fold differences; parameters by "
+                  "non-negative least squares on all undisturbed samples, standard deviations by block "
+                  "jackknife over the folds. Coulomb friction uses tanh(dq/v_s), v_s = "
+                  f"{self.info.get('sign_noise_factor')} x velocity noise: "
+                  + ", ".join(f"{v:.3g}" for v in self.info.get("v_s", [])) + " rad/s.", ""]
+        if self.info.get("plots"):
+            lines += ["## Plots", ""] + [f"![{p}]({p})" for p in self.info["plots"]]
+        return "\n".join(lines) + "\n"
+
+    def write(self, out_dir) -> Path:
+        """Write ``findings.json``, ``report.md`` and residual plots into ``out_dir``."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        if self._plot_data is not None:
+            self.info["plots"] = _plot(self._plot_data, out)
+        (out / "findings.json").write_text(self.to_json())
+        (out / "report.md").write_text(self.report_markdown())
+        return out
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def _plot(d: dict, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    T = d["q"].shape[0]
+    idx = np.linspace(0, T - 1, min(T, 3000)).astype(int)
+    for j, jn in enumerate(d["joint_names"]):
+        fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharey="row")
+        for row, (res, lab) in enumerate(((d["r_before"], "nominal"), (d["r_after"], "with physics"))):
+            for col, (x, xl) in enumerate(((d["dq"], "dq [rad/s]"), (d["q"], "q [rad]"), (d["tau"], "tau [N*m]"))):
+                ax = axes[row, col]
+                ax.plot(x[idx, j], res[idx, j], ".", ms=1.5, alpha=0.5, rasterized=True)
+                ax.axhline(0, color="k", lw=0.5)
+                ax.set_xlabel(xl)
+                if col == 0:
+                    ax.set_ylabel(f"residual, {lab} [N*m]")
+        fig.suptitle(f"{jn}: residual before / after the found effects")
+        fig.tight_layout()
+        name = f"residual_{j}_{jn}.png".replace("/", "_")
+        fig.savefig(out / name, dpi=80)
+        plt.close(fig)
+        names.append(name)
+    return names
+
+
+# --------------------------------------------------------------------------------------------
+# Locate
+# --------------------------------------------------------------------------------------------
+
+def locate(r: np.ndarray, q, dq, ddq, tau_rbd, t, v_s, joint_names) -> dict:
+    """Where the residual ``r`` (T, n) concentrates, per joint: the region (of five candidates:
+    near-zero velocity, high load, a position quintile, high acceleration, a time fifth) whose
+    residual RMS is largest relative to the joint's overall residual RMS."""
+    out = {}
+    T = r.shape[0]
+    for j, jn in enumerate(joint_names):
+        rj = r[:, j]
+        rms = float(np.sqrt(np.mean(rj ** 2))) + 1e-300
+        regions = {}
+        slow = np.abs(dq[:, j]) < 2 * v_s[j]
+        if 20 <= slow.sum() <= T - 20:
+            regions["near zero velocity (|dq| < 2 v_s)"] = slow
+        hi = np.abs(tau_rbd[:, j]) > np.quantile(np.abs(tau_rbd[:, j]), 0.8)
+        regions["high load (top 20% |tau_rbd|)"] = hi
+        acc = np.abs(ddq[:, j]) > np.quantile(np.abs(ddq[:, j]), 0.8)
+        regions["high acceleration (top 20% |ddq|)"] = acc
+        qe = np.quantile(q[:, j], [0, .2, .4, .6, .8, 1])
+        for a, b in zip(qe[:-1], qe[1:]):
+            regions[f"q in [{a:.2f}, {b:.2f}] rad"] = (q[:, j] >= a) & (q[:, j] <= b)
+        te = np.linspace(0, T, 6).astype(int)
+        for a, b in zip(te[:-1], te[1:]):
+            m = np.zeros(T, bool)
+            m[a:b] = True
+            regions[f"t in [{t[a]:.1f}, {t[b - 1]:.1f}] s"] = m
+        ratios = {k: float(np.sqrt(np.mean(rj[m] ** 2)) / rms) for k, m in regions.items() if m.any()}
+        where = max(ratios, key=ratios.get)
+        out[jn] = {"rms": rms, "fraction_of_torque_rms": rms / (float(np.sqrt(np.mean(tau_rbd[:, j] ** 2))) + 1e-12),
+                   "where": where, "ratio": ratios[where], "regions": ratios}
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The diagnosis
+# --------------------------------------------------------------------------------------------
+
+def _nnls_gram(G: np.ndarray, c: np.ndarray, nonneg: np.ndarray) -> np.ndarray:
+    """min th' G th - 2 c' th with th[nonneg] >= 0, via a Cholesky factor and lsq_linear."""
+    from scipy.optimize import lsq_linear
+
+    P = len(c)
+    if P == 0:
+        return np.zeros(0)
+    reg = 1e-10 * max(np.diag(G).max(), 1e-300)
+    L = np.linalg.cholesky(G + reg * np.eye(P))
+    b = np.linalg.solve(L, c)
+    lo = np.where(nonneg, 0.0, -np.inf)
+    return lsq_linear(L.T, b, bounds=(lo, np.full(P, np.inf)), method="bvls").x
+
+
+def _joint_label(jn: str, j: int) -> str:
+    return f"joint {j} ({jn})"
+
+
+def diagnose(log: RobotLog, robot, *, config: DiagnoseConfig | dict | None = None,
+             out_dir=None, labels_disturbed: np.ndarray | None = None) -> DiagnosisResult:
+    """Diagnose what the nominal model of ``robot`` misses in ``log``.
+
+    ``log``: RobotLog (dq/ddq estimated when absent); ``robot``: mmgp RobotModel or a
+    pinocchio.Model with the log's joints. ``labels_disturbed`` (T,) optional known push flags
+    (skip the separation). Returns a :class:`DiagnosisResult`; with ``out_dir`` also writes it.
+    """
+    cfg = DiagnoseConfig.from_dict(config)
+    t0 = time.perf_counter()
+    from .signals import complete_derivatives, time_block_folds
+
+    if log.dq is None or log.ddq is None:
+        log = complete_derivatives(log)
+    if log.dq_estimated or log.ddq_estimated:
+        # polynomial differentiators are poor within a window of the ends; the parallel filter
+        # would spread those errors over a cutoff period, so the ends are dropped first
+        dt0 = float(np.median(np.diff(log.t)))
+        cut = int(np.ceil(0.06 / dt0)) + 2
+        if log.n_samples > 10 * cut:
+            keep = np.arange(cut, log.n_samples - cut)
+            log = log.subset(keep)
+            if labels_disturbed is not None:
+                labels_disturbed = np.asarray(labels_disturbed)[keep]
+    T_full = log.n_samples
+    if T_full > cfg.max_samples:
+        # derivatives were taken at the full rate; thinning only bounds the runtime
+        keep = np.unique(np.linspace(0, T_full - 1, cfg.max_samples).round().astype(int))
+        log = log.subset(keep)
+        if labels_disturbed is not None:
+            labels_disturbed = np.asarray(labels_disturbed)[keep]
+    q, dq, ddq, tau, t = log.q, log.dq, log.ddq, log.tau, log.t
+    T, n = q.shape
+    names = list(getattr(robot, "joint_names", None) or log.joint_names or
+                 [str(fx._pin_model(robot).names[j]) for j in range(1, n + 1)])
+    vs = fx.smooth_sign_scale(dq, k=cfg.sign_noise_factor)
+    ctx = fx.build_context(robot, q, dq, ddq, v_s=vs, joint_names=names)
+    timings = {"context_s": time.perf_counter() - t0}
+    r_raw = tau - ctx.tau_rbd
+    lp, f_c = lowpass_for(t, dq) if cfg.filter else ((lambda x: x), None)
+    r = lp(r_raw)
+
+    library = fx.effect_library(ctx, effects=cfg.effects, payload_links=cfg.payload_links)
+    payloads = [e for e in library if isinstance(e, fx.Payload)]
+
+    def atoms():
+        keys, A = fx.build_atoms(library, ctx)
+        return keys, lp(A)
+
+    # full-library fit: noise weights, payload com guesses, and the whitened residual for the scan
+    def full_fit(use):
+        Au, ru = A[use], r[use]
+        G = np.einsum("tjp,tjq->pq", Au, Au, optimize=True)
+        c = np.einsum("tjp,tj->p", Au, ru, optimize=True)
+        return FoldGrams._solve(G + 1e-8 * np.diag(np.diag(G)), c)
+
+    use = np.ones(T, bool)
+    keys, A = atoms()
+    th = full_fit(use)
+    if payloads:
+        for _ in range(2):
+            for e in payloads:
+                m = th[keys.index(("pl", e.index, 0))]
+                h = np.array([th[keys.index(("pl", e.index, i))] for i in (1, 2, 3)])
+                c = h / m if m > 0 else np.zeros(3)
+                ctx.payload_com[e.index] = c if np.linalg.norm(c) < 1.0 else np.zeros(3)
+            keys, A = atoms()
+            th = full_fit(use)
+
+    # separate pushes
+    sep_info: dict = {"method": "labels" if labels_disturbed is not None else cfg.separate}
+    if labels_disturbed is not None:
+        disturbed = np.asarray(labels_disturbed) == 1
+    elif cfg.separate == "none":
+        disturbed = np.zeros(T, bool)
+    elif cfg.separate == "em":
+        from .em import MultimodalSEM
+        from .signals import features
+
+        e = r_raw - fx.build_atoms(library, ctx)[1] @ th
+        sem = MultimodalSEM(n_modes=1, disturbance=True, seed=cfg.seed).fit(features(log), e)
+        disturbed = np.asarray(sem.disturbed_, bool)
+    else:
+        disturbed, sep_info_scan = scan_disturbances(r - A @ th, t, f_c=f_c)
+        sep_info.update(sep_info_scan)
+        if disturbed.any():
+            # refit without the pushes and scan again: a push inflates the first fit's residual
+            th = full_fit(~disturbed)
+            disturbed, sep_info_scan = scan_disturbances(r - A @ th, t, f_c=f_c)
+            sep_info.update(sep_info_scan)
+    use = ~disturbed
+    timings["separate_s"] = time.perf_counter() - t0 - timings["context_s"]
+
+    # joint weights: inverse residual variance of the full library (a GLS weighting)
+    e = (r - A @ th)[use]
+    sig2 = e.var(0) + 1e-12 * (r[use].var(0) + 1e-12)
+    w = 1.0 / sig2
+
+    K = cfg.n_folds
+    # gap: the filter's memory (about 2 periods of the cutoff) plus the differentiator window
+    gap_s = 0.05 + (2.0 / f_c if f_c else 0.0)
+    gap = int(max(0, round(gap_s / max(float(np.median(np.diff(t))), 1e-9))))
+    folds = time_block_folds(T, K, gap=min(gap, T // (4 * K)))
+    grams = FoldGrams(A, r, use, folds)
+    sel = ForwardCVSelector(se_rule=cfg.se_rule, max_steps=cfg.max_steps).fit(library, keys, grams, w)
+    chosen = sel.selected_
+    timings["select_s"] = time.perf_counter() - t0 - sum(timings.values())
+
+    # final fit with point-mass inertia of payloads re-estimated
+    kidx = {a: i for i, a in enumerate(keys)}
+    S = ForwardCVSelector._atoms(chosen, kidx)
+    nonneg = np.array([any(keys[i] in e.nonneg for e in chosen) for i in S], bool)
+
+    def final(S):
+        Gw = np.einsum("j,jpq->pq", w, grams.Gall[:, S][:, :, S])
+        cw = np.einsum("j,jp->p", w, grams.call[:, S])
+        return _nnls_gram(Gw, cw, nonneg)
+
+    thS = final(S)
+    for _ in range(3):
+        moved = False
+        for e in chosen:
+            if isinstance(e, fx.Payload):
+                m = thS[S.index(kidx[("pl", e.index, 0)])]
+                h = np.array([thS[S.index(kidx[("pl", e.index, i)])] for i in (1, 2, 3)])
+                if m > 0:
+                    ctx.payload_com[e.index] = h / m
+                    moved = True
+        if not moved:
+            break
+        keys, A = atoms()
+        grams = FoldGrams(A, r, use, folds)
+        thS = final(S)
+    # block jackknife over the folds: honest under time-correlated residuals
+    thK = np.array([_nnls_gram(np.einsum("j,jpq->pq", w, grams.Gtr[k][:, S][:, :, S]),
+                               np.einsum("j,jp->p", w, grams.ctr[k][:, S]), nonneg) for k in range(K)]) if S else np.zeros((K, 0))
+    dev = thK - thK.mean(0)
+    cov_m = (K - 1) / K * dev.T @ dev
+    coef = {keys[i]: float(v) for i, v in zip(S, thS)}
+    cov = {(keys[a], keys[b]): float(cov_m[ia, ib]) for ia, a in enumerate(S) for ib, b in enumerate(S)}
+
+    # per-joint held-out error of each stage
+    def stage_err(Ssub):
+        return grams.cv_errors(Ssub, w)  # (K, n)
+
+    err_nom = stage_err([])
+    err_phys = stage_err(S)
+    findings = []
+    reported = [e for e in chosen if not any(o is not e and o.index == e.index and e.name in o.supersedes and
+                                             not isinstance(o, fx.Payload) for o in chosen)]
+    for step, e in enumerate(chosen):
+        if e not in reported:
+            continue
+        others = [o for o in chosen if o is not e]
+        S_wo = ForwardCVSelector._atoms(others, kidx)
+        # an effect nested in a reported one (Coulomb in load-dependent) goes with it
+        S_wo = [i for i in S_wo if keys[i] not in e.atoms()]
+        err_wo = stage_err(S_wo)
+        per_joint = 1 - err_phys.sum(0) / np.maximum(err_wo.sum(0), 1e-300)
+        d = (err_wo - err_phys) @ w
+        z = float(d.mean() / (d.std(ddof=1) / np.sqrt(K) + 1e-300))
+        aff = e.affected_joints(ctx)
+        jmain = max(aff, key=lambda j: per_joint[j]) if aff else int(np.argmax(per_joint))
+        p, s = e.params(coef, cov)
+        ev = {"cv_error_reduction": float(per_joint[jmain]),
+              "cv_error_reduction_joint": names[jmain],
+              "cv_error_reduction_per_joint": {names[j]: float(per_joint[j]) for j in aff},
+              "cv_improvement_in_se": z, "selection_step": chosen.index(e) + 1, "params_std": s,
+              "criterion": f"{K}-fold time-block CV, {cfg.se_rule:g}-SE rule"}
+        f = {"effect": e.name, **e.where(ctx), "params": p, "evidence": ev}
+        if isinstance(e, fx.Payload):
+            f["params"] = {"link": ctx.link_names[e.index], **p}
+        f["explanation"] = _explain(e, p, s, ev, names, jmain, ctx)
+        findings.append(f)
+
+    # third stage: GP on what physics leaves
+    fit = {}
+    denom = np.array([np.sum((tau[use, j] - tau[use, j].mean()) ** 2) / use.sum() for j in range(n)]) + 1e-300
+    nte = grams.nte.sum()
+    for stage, err in (("nominal", err_nom), ("with_physics", err_phys)):
+        nm = err.sum(0) / nte / denom
+        fit[stage] = {"nmse": {names[j]: float(nm[j]) for j in range(n)}, "mean_nmse": float(nm.mean())}
+    if cfg.gp:
+        from .gp import ExactGP
+
+        X = np.concatenate([q, dq, ddq], axis=1)
+        rng = np.random.default_rng(cfg.seed)
+        sq = np.zeros(n)
+        for k, (tr, te) in enumerate(folds):
+            tr, te = tr[use[tr]], te[use[te]]
+            th_k = grams.fit(S, w, k) if S else np.zeros(0)
+            res_tr = r[tr] - (A[tr][:, :, S] @ th_k if S else 0)
+            res_te = r[te] - (A[te][:, :, S] @ th_k if S else 0)
+            sub = np.sort(rng.choice(tr, min(cfg.gp_points, len(tr)), replace=False))
+            pos = np.searchsorted(tr, sub)
+            gp = ExactGP(max_fit_points=min(cfg.gp_points, 600), max_iter=40, seed=cfg.seed).fit(X[sub], res_tr[pos])
+            mu = gp.predict(X[te], return_std=False)
+            sq += ((res_te - mu) ** 2).sum(0)
+        nm = sq / nte / denom
+        fit["with_physics_and_gp"] = {"nmse": {names[j]: float(nm[j]) for j in range(n)}, "mean_nmse": float(nm.mean())}
+        timings["gp_s"] = time.perf_counter() - t0 - sum(timings.values())
+    fit["folds"] = K
+    fit["samples_used"] = int(use.sum())
+    fit["samples_excluded_as_disturbed"] = int((~use).sum())
+
+    if disturbed.any():
+        spans = sep_info.get("spans", [(float(t[a]), float(t[b - 1])) for a, b in _runs(disturbed)])
+        findings.append({"effect": "external_disturbance", "joint": None,
+                         "params": {"n_samples": int(disturbed.sum()), "fraction": float(disturbed.mean()),
+                                    "spans_s": spans[:50]},
+                         "evidence": {"method": sep_info.get("method"), "threshold": sep_info.get("threshold")},
+                         "explanation": f"{len(spans)} span(s) of unmodelled external force ({int(disturbed.sum())} "
+                                        f"samples, {100 * disturbed.mean():.1f}% of the log) were found and left out "
+                                        "of the effect fitting."})
+
+    r_after = r - (A[:, :, S] @ thS if S else 0)
+    loc = locate(r[use], q[use], dq[use], ddq[use], ctx.tau_rbd[use], t[use], vs, names)
+    timings["total_s"] = time.perf_counter() - t0
+    info = {"n_samples": int(T), "n_samples_in_log": int(T_full), "n_candidates": len(library),
+            "n_folds": K, "lowpass_hz": f_c, "sign_noise_factor": cfg.sign_noise_factor, "v_s": vs.tolist(),
+            "selection_path": [{"effects": [f"{e.name}@{e.where(ctx)}" for e in p.effects[-1:]],
+                                "cv": p.cv_mean} for p in sel.path_],
+            "chosen_step": sel.chosen_step_, "separation": {k: v for k, v in sep_info.items() if k != "spans"},
+            "timings": timings}
+    plot = None
+    if cfg.plots:
+        plot = {"q": q[use], "dq": dq[use], "tau": tau[use], "r_before": r[use], "r_after": r_after[use],
+                "joint_names": names}
+    res = DiagnosisResult(findings=findings, fit=fit, location=loc, joint_names=names, info=info, _plot_data=plot)
+    if out_dir is not None:
+        res.write(out_dir)
+    return res
+
+
+def _explain(e, p, s, ev, names, jmain, ctx) -> str:
+    red = 100 * ev["cv_error_reduction"]
+    tail = (f"adding it cuts the held-out error on joint {jmain} ({names[jmain]}) by {red:.0f}%"
+            if red > 0 else "it is kept by the selection rule although its own held-out gain is small")
+    if isinstance(e, fx.Payload):
+        com = ", ".join(f"{c:.3f}" for c in p["com"])
+        return (f"link {ctx.link_names[e.index]}: {_LABEL[e.name]} of {_fmt_num(p['mass'], s['mass'])} kg at "
+                f"[{com}] m (link frame) is missing from the model; {tail}.")
+    parts = []
+    for k in e.param_names:
+        unit = _UNITS.get(k)
+        if k == "offset":
+            unit = "rad" if e.name == "encoder_offset" else "N*m"
+        parts.append(f"{k} = {_fmt_num(p[k], s[k])}{(' ' + unit) if unit else ''}")
+    j = e.index
+    if e.name in ("coulomb_friction", "viscous_friction", "armature") and len(parts) == 1:
+        what = f"{_LABEL[e.name]} of {parts[0].split(' = ')[1]}"
+    else:
+        what = f"{_LABEL[e.name]} ({', '.join(parts)})"
+    return f"joint {j} ({names[j]}): {what} is missing from the model; {tail}."
