@@ -108,6 +108,8 @@ def _simulate(spec: dict, seed: int, physics: dict, offsets: dict):
     reference = _reference(robot, rng, urdf, joints, duration)
     kw = {k: physics[k] for k in ("frictionloss", "damping", "armature", "stiffness", "springref") if k in physics}
     payload = physics.get("payload")
+    if spec.get("modes") and payload is None:
+        payload = {"link": "panda_link7" if n > 1 else "lever", "mass": float(spec["modes"][0]), "com": [0.0, 0.0, 0.1]}
     model = sim.load_model(urdf, joints, payload=payload, **kw)
     nominal = sim.load_model(urdf, joints)
     load_fric = physics.get("load_friction")  # (c (n,), beta (n,)) or None

@@ -22,6 +22,8 @@ class TrainConfig:
     diff_window_s: Savitzky-Golay window in seconds (null: from the sample rate).
     semiparametric: with a robot model, "residual" (GP learns tau - tau_rbd; default),
         "feature" (tau_rbd is an extra GP input) or "none".
+    exclusion_s: samples within this many seconds of a sample are left out of its likelihood
+        (leave-window-out; 0 = plain leave-one-out).
     max_support / fit_points / fit_iter / max_sweeps / min_sweeps / average_last: see MultimodalSEM.
     objective: "loo" (full LOO log predictive) or "marginal".
     ard: per-input lengthscales.
@@ -36,6 +38,7 @@ class TrainConfig:
     rate_hz: float | None = None
     diff_window_s: float | None = None
     semiparametric: str = "residual"
+    exclusion_s: float = 1.0
     max_support: int = 1000
     fit_points: int = 600
     fit_iter: int = 50

@@ -317,6 +317,10 @@ def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None,
     T_eff = max(1.0, min(T, 2.0 * f_c * dur)) if f_c else float(T)
     thr = float(chi2.ppf(1 - alpha / T_eff, n))
     core = z2 > thr
+    if f_c:
+        # within a cutoff period of the ends the zero-phase filter runs on padding, not data
+        edge = (t - t[0] < 1.0 / f_c) | (t[-1] - t < 1.0 / f_c)
+        core &= ~edge
     mask = core.copy()
     if core.any():
         band = z2 > chi2.ppf(0.99, n)
@@ -324,7 +328,38 @@ def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None,
             if core[a:b].any():
                 mask[a:b] = True
     spans = [(float(t[a]), float(t[b - 1])) for a, b in _runs(mask)]
-    return mask, {"threshold": thr, "effective_samples": T_eff, "spans": spans}
+    peaks = [float(z2[a:b].max() / thr) for a, b in _runs(mask)]
+    return mask, {"threshold": thr, "peaks": peaks, "effective_samples": T_eff, "spans": spans}
+
+
+def state_explained(e: np.ndarray, mask: np.ndarray, q, dq, ddq, *, k: int = 15) -> np.ndarray:
+    """Per flagged span, the fraction of its residual energy that the joint's own state explains.
+
+    Each joint's residual in a span is predicted from the unflagged samples nearest in that
+    joint's (q, dq, ddq) (k-nearest neighbours on standardised values). A model misfit (friction
+    at velocity reversals, say) repeats wherever the state repeats, so it is explained; an
+    external push is not. Returns one fraction per span of ``mask`` (order of ``_runs``).
+    """
+    from sklearn.neighbors import KNeighborsRegressor
+
+    T, n = e.shape
+    s2 = e[~mask].var(0) + 1e-300
+    pred = np.zeros_like(e)
+    free = np.flatnonzero(~mask)
+    flagged = np.flatnonzero(mask)
+    if len(free) < 2 * k or not len(flagged):
+        return np.zeros(len(_runs(mask)))
+    for j in range(n):
+        X = np.stack([q[:, j], dq[:, j], ddq[:, j]], 1)
+        X = (X - X[free].mean(0)) / (X[free].std(0) + 1e-12)
+        knn = KNeighborsRegressor(n_neighbors=k).fit(X[free], e[free, j])
+        pred[flagged, j] = knn.predict(X[flagged])
+    out = []
+    for a, b in _runs(mask):
+        tot = ((e[a:b] ** 2) / s2).sum()
+        left = (((e[a:b] - pred[a:b]) ** 2) / s2).sum()
+        out.append(float(1 - left / max(tot, 1e-300)))
+    return np.array(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -598,6 +633,15 @@ def diagnose(log: RobotLog, robot, *, config: DiagnoseConfig | dict | None = Non
             th = full_fit(~disturbed)
             disturbed, sep_info_scan = scan_disturbances(r - A @ th, t, f_c=f_c)
             sep_info.update(sep_info_scan)
+            if disturbed.any():
+                # keep only spans the state does not explain better than not (pushes, not misfit)
+                frac = state_explained(r - A @ th, disturbed, q, dq, ddq)
+                runs = _runs(disturbed)
+                for (a, b), fr in zip(runs, frac):
+                    if fr > 0.5:
+                        disturbed[a:b] = False
+                sep_info["spans"] = [(float(t[a]), float(t[b - 1])) for a, b in _runs(disturbed)]
+                sep_info["state_explained"] = [float(x) for x in frac]
     use = ~disturbed
     timings["separate_s"] = time.perf_counter() - t0 - timings["context_s"]
 

@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .gp import ExactGP, Hyper, LOG_2PI
+from .gp import ExactGP, Hyper, LOG_2PI, default_hyper, rbf_kernel, robust_cholesky
 
 
 # ----------------------------------------------------------------------------------------------
@@ -152,6 +152,148 @@ def sequence_log_prior(states: np.ndarray, A: np.ndarray, init: np.ndarray, star
     return lp + float(np.log(A[states[idx - 1], states[idx]]).sum())
 
 
+def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndarray, radius: float,
+                        chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Predictive mean and variance (incl. noise) at Xq (M, d) from the GP's support *minus* every
+    support point within ``radius`` seconds of each query's time.
+
+    Logged samples are dense in time, so a sample's neighbours are near-copies of it; an ordinary
+    LOO predictive lets a sustained push be "predicted" by the rest of the same push. Leaving the
+    whole time window out asks the question that matters: is this stretch explained by the rest of
+    the log? Closed form from A = K^-1 of the full support (S) and W = the window's members:
+        mu_W  = mu  - u_W^T A_WW^-1 alpha_W,     var_W = var + u_W^T A_WW^-1 u_W,   u = A k_S*.
+    ``tq`` (M,) and ``ts`` (S,) are times (sorted ``ts``) on a common axis; (M, m) outputs.
+    """
+    import torch
+
+    dev = gp.dev_
+    ls, sf, sn = gp.hyper_.to_torch(dev)
+    Xs = gp.Xs_
+    A = torch.cholesky_inverse(gp.L_)                                     # (m, S, S)
+    alpha = gp.alpha_                                                     # (m, S)
+    m = A.shape[0]
+    lo = np.searchsorted(ts, tq - radius, side="left")
+    hi = np.searchsorted(ts, tq + radius, side="right")
+    Xq_s = torch.as_tensor(gp.x_scaler_.transform(np.asarray(Xq, dtype=np.float64)), dtype=A.dtype, device=dev)
+    means, vars_ = [], []
+    for c0 in range(0, len(tq), chunk):
+        sl = slice(c0, c0 + chunk)
+        Kq = rbf_kernel(Xs, Xq_s[sl], ls, sf)                             # (m, S, M)
+        U = A @ Kq                                                         # (m, S, M)
+        mu = (Kq * alpha.unsqueeze(-1)).sum(1)                             # (m, M)
+        var = sf[:, None] - (Kq * U).sum(1)
+        l, h = lo[sl], hi[sl]
+        w = int((h - l).max()) if len(l) else 0
+        if w > 0:
+            offs = np.arange(w)
+            idx = l[:, None] + offs[None, :]                               # (M, w)
+            valid = idx < h[:, None]
+            idx = np.where(valid, idx, 0)
+            it = torch.as_tensor(idx, device=dev)
+            vt = torch.as_tensor(valid, device=dev, dtype=A.dtype)
+            Aww = A[:, it[:, :, None], it[:, None, :]]                      # (m, M, w, w)
+            mask2 = vt[:, :, None] * vt[:, None, :]
+            eye = torch.eye(w, dtype=A.dtype, device=dev)
+            Aww = Aww * mask2 + eye * (1 - mask2)
+            cols = torch.arange(U.shape[-1], device=dev)[:, None].expand(-1, w)
+            uW = U[:, it, cols] * vt                                       # (m, M, w)
+            aW = alpha[:, it] * vt                                         # (m, M, w)
+            sol = torch.linalg.solve(Aww, torch.stack([aW, uW], -1))       # (m, M, w, 2)
+            mu = mu - (uW * sol[..., 0]).sum(-1)
+            var = var + (uW * sol[..., 1]).sum(-1)
+        var = var.clamp_min(1e-12) + sn[:, None]
+        means.append(mu.T)
+        vars_.append(var.T)
+    mean = torch.cat(means).cpu().numpy() * gp.y_scaler_.scale_ + gp.y_scaler_.mean_
+    var = torch.cat(vars_).cpu().numpy() * gp.y_scaler_.scale_ ** 2
+    return mean, var
+
+
+def _windows(ts: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For sorted times ts (N,): member indices (N, w), validity mask (N, w) and each sample's own
+    position in its window (N,), windows = all samples within ``radius`` of each sample."""
+    lo = np.searchsorted(ts, ts - radius, side="left")
+    hi = np.searchsorted(ts, ts + radius, side="right")
+    w = int((hi - lo).max())
+    idx = lo[:, None] + np.arange(w)[None, :]
+    valid = idx < hi[:, None]
+    pos = np.arange(len(ts)) - lo
+    return np.where(valid, idx, 0), valid, pos
+
+
+def windowed_loo_log_predictive(X, y, log_ls, log_sf, log_sn, noise_floor, idx, valid, pos):
+    """Sum over samples of log p(y_i | all samples outside i's time window), per output (m,).
+
+    Exact leave-block-out: for block W, y_W | rest ~ N(y_W - P_WW^-1 [P y]_W, P_WW^-1), P = K^-1.
+    X (N, d) and y (m, N) torch tensors; idx/valid/pos from :func:`_windows`.
+    """
+    import torch
+
+    N = X.shape[0]
+    K = rbf_kernel(X, X, torch.exp(log_ls), torch.exp(log_sf))
+    K = K + (torch.exp(log_sn) + noise_floor)[:, None, None] * torch.eye(N, dtype=X.dtype, device=X.device)
+    L, _ = robust_cholesky(K)
+    P = torch.cholesky_inverse(L)
+    alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
+    it = torch.as_tensor(idx, device=X.device)
+    vt = torch.as_tensor(valid, dtype=X.dtype, device=X.device)
+    w = idx.shape[1]
+    mask2 = vt[:, :, None] * vt[:, None, :]
+    eye = torch.eye(w, dtype=X.dtype, device=X.device)
+    Pww = P[:, it[:, :, None], it[:, None, :]] * mask2 + eye * (1 - mask2)
+    aW = alpha[:, it] * vt
+    e = torch.zeros((N, w), dtype=X.dtype, device=X.device)
+    e[torch.arange(N), torch.as_tensor(pos, device=X.device)] = 1.0
+    sol = torch.linalg.solve(Pww, torch.stack([aW, e.expand_as(aW)], -1))
+    p = torch.as_tensor(pos, device=X.device)
+    r = sol[:, torch.arange(N), p, 0]
+    var = sol[:, torch.arange(N), p, 1]
+    return (-0.5 * (LOG_2PI + torch.log(var) + r ** 2 / var)).sum(-1)
+
+
+def optimise_hyper_windowed(Xs, Ys, ts: np.ndarray, radius: float, init: Hyper, *, max_iter: int = 50,
+                            noise_floor: float = 1e-6) -> Hyper:
+    """Hyperparameters maximising the leave-window-out log predictive (block cross-validation
+    in time). Plain LOO on densely logged data is nearly in-sample (each sample's neighbours are
+    near-copies), so it rewards lengthscales short enough to memorise transients such as pushes.
+    Xs (N, d), Ys (N, m) standardised torch tensors, ts (N,) sorted times."""
+    import math
+
+    import torch
+    from scipy.optimize import minimize
+
+    m, d = Ys.shape[1], Xs.shape[1]
+    idx, valid, pos = _windows(ts, radius)
+    y = Ys.T.contiguous()
+    theta0 = np.concatenate([np.log(init.lengthscale).ravel(), np.log(init.signal_var),
+                             np.log(np.maximum(init.noise_var - noise_floor, 1e-8))])
+    bounds = ([(math.log(1e-2), math.log(1e3))] * (m * d) + [(math.log(1e-4), math.log(1e3))] * m
+              + [(math.log(1e-9), math.log(10.0))] * m)
+    lo_b, hi_b = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
+    theta0 = np.clip(theta0, lo_b, hi_b)
+    N = Xs.shape[0]
+
+    def fun(theta):
+        th = torch.as_tensor(theta, dtype=Xs.dtype, device=Xs.device).requires_grad_(True)
+        log_ls, log_sf, log_sn = th[:m * d].reshape(m, d), th[m * d:m * d + m], th[m * d + m:]
+        try:
+            F = windowed_loo_log_predictive(Xs, y, log_ls, log_sf, log_sn, noise_floor, idx, valid, pos).sum()
+        except Exception:
+            return 1e10, np.zeros_like(theta)
+        prior = -0.5 * ((log_ls / 1.5) ** 2).sum() - 0.5 * ((log_sf / 2.0) ** 2).sum()
+        loss = -(F + prior) / N
+        if not torch.isfinite(loss):
+            return 1e10, np.zeros_like(theta)
+        loss.backward()
+        return float(loss), th.grad.cpu().numpy().astype(np.float64)
+
+    res = minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds,
+                   options={"maxiter": max_iter, "maxfun": int(1.5 * max_iter) + 5})
+    theta = res.x if np.isfinite(res.fun) and res.fun < 1e9 else theta0
+    return Hyper(np.exp(theta[:m * d]).reshape(m, d), np.exp(theta[m * d:m * d + m]),
+                 np.exp(theta[m * d + m:]) + noise_floor)
+
+
 # ----------------------------------------------------------------------------------------------
 # The estimator
 # ----------------------------------------------------------------------------------------------
@@ -189,7 +331,7 @@ class MultimodalSEM:
                  stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
                  tol_changed: float = 0.01, patience: int = 3, average_last: int = 5,
                  max_support: int = 1000, fit_points: int = 600, fit_iter: int = 50,
-                 gp_kwargs: dict | None = None, seed: int = 0,
+                 exclusion_s: float = 1.0, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
             raise ValueError("n_modes must be >= 1")
@@ -207,6 +349,7 @@ class MultimodalSEM:
         self.max_support = max_support
         self.fit_points = fit_points
         self.fit_iter = fit_iter
+        self.exclusion_s = exclusion_s
         self.gp_kwargs = gp_kwargs or {}
         self.seed = seed
         self.progress = progress
@@ -224,8 +367,21 @@ class MultimodalSEM:
         if len(support) > self.max_support:
             support = np.sort(rng.choice(support, self.max_support, replace=False))
         gp = self._new_gp()
+        windowed = self._t_axis is not None and self.exclusion_s > 0
+        if windowed and optimise:
+            # Condition once on the fitting subset to get the standardisation, then tune there.
+            fit_idx = support
+            if len(fit_idx) > self.fit_points:
+                fit_idx = np.sort(rng.choice(support, self.fit_points, replace=False))
+            gp.fit(X[fit_idx], Y[fit_idx], hyper=hyper or default_hyper(X.shape[1], Y.shape[1]), optimise=False)
+            hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, self._t_axis[fit_idx], self.exclusion_s,
+                                            gp.hyper_, max_iter=self.fit_iter)
+            optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
         T, n = Y.shape
+        if windowed:
+            mean, var = windowed_predictive(gp, X, self._t_axis, self._t_axis[support], self.exclusion_s)
+            return mean.reshape(T, n), var.reshape(T, n), gp, support
         mean = np.empty((T, n))
         std = np.empty((T, n))
         other = np.setdiff1d(np.arange(T), support, assume_unique=True)
@@ -263,9 +419,10 @@ class MultimodalSEM:
         return states
 
     # -- fit -----------------------------------------------------------------------------------
-    def fit(self, X: np.ndarray, Y: np.ndarray, *, starts: Sequence[int] = (0,),
+    def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
             init_states: np.ndarray | None = None) -> "MultimodalSEM":
-        """X (T, d) inputs, Y (T, n) torques. ``starts``: first index of each separate log.
+        """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
+        leave-window-out likelihood). ``starts``: first index of each separate log.
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
@@ -281,6 +438,17 @@ class MultimodalSEM:
         S = 2 * K if self.disturbance else K
         rng = np.random.default_rng(self.seed)
         starts = sorted(set(int(s) for s in starts) | {0})
+        self._t_axis = None
+        if t is not None:
+            # One increasing time axis over all logs, with gaps wider than any window between them.
+            t = np.asarray(t, dtype=np.float64)
+            axis = t.copy()
+            bounds = list(starts) + [T]
+            offset = 0.0
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                axis[a:b] = t[a:b] - t[a] + offset
+                offset = axis[b - 1] + 10.0 * max(self.exclusion_s, 1.0)
+            self._t_axis = axis
         if T < 5 * K:
             raise ValueError(f"{T} samples are too few for {K} modes")
 
@@ -431,14 +599,14 @@ def _transition_counts(states: np.ndarray, K: int, starts: Sequence[int]) -> dic
             "disturbed": int(da.sum()), "leave": int((da & ~db).sum())}
 
 
-def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, starts=(0,), **kw) -> tuple[MultimodalSEM, dict]:
+def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), **kw) -> tuple[MultimodalSEM, dict]:
     """Choose K by a BIC-style score on the chain's log marginal likelihood of the final sweep
     (itself built from out-of-sample GP predictions): score = log p(Y) - 0.5 log(T) * n_params."""
     T, n = np.asarray(Y).reshape(len(Y), -1).shape
     d = np.asarray(X).shape[1]
     scores, models = {}, {}
     for K in candidates:
-        m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, starts=starts)
+        m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, t=t, starts=starts)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         models[K] = m
     best = max(scores, key=scores.get)

@@ -93,7 +93,7 @@ def gaussian_logpdf(y: torch.Tensor, mean: torch.Tensor, var: torch.Tensor) -> t
 def loo_log_predictive(K: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Sum over samples of the LOO log predictive density, per output: K (m,N,N) incl. noise, y (m,N) -> (m,)."""
     L, _ = robust_cholesky(K)
-    Kinv = torch.cholesky_inverse(L)
+    Kinv = inverse_from_cholesky(L)
     mu, var = loo_from_inverse(Kinv, y)
     return gaussian_logpdf(y, mu, var).sum(-1)
 
@@ -358,7 +358,7 @@ class ExactGP:
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """Leave-one-out predictive mean and std (N, m) of the training outputs (closed form)."""
-        Kinv = torch.cholesky_inverse(self.L_)
+        Kinv = inverse_from_cholesky(self.L_)
         mu, var = loo_from_inverse(Kinv, self.Ys_.T)
         mean = mu.T.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
         std = np.sqrt(var.T.cpu().numpy()) * self.y_scaler_.scale_

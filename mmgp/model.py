@@ -52,6 +52,7 @@ class Features:
     Y: np.ndarray
     tau_rbd: np.ndarray | None
     starts: list[int]
+    t: np.ndarray | None = None
 
 
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None) -> Features:
@@ -60,7 +61,9 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None) ->
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    return _features(q, dq, ddq, tau, semiparametric, robot, starts)
+    f = _features(q, dq, ddq, tau, semiparametric, robot, starts)
+    f.t = np.concatenate([lg.t for lg in logs])
+    return f
 
 
 def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,)) -> Features:
@@ -196,13 +199,14 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     feats = build_features(logs, semi, robot)
     kw = dict(disturbance=cfg.disturbance, estep=cfg.estep, stay_prob=cfg.stay_prob, max_sweeps=cfg.max_sweeps,
               min_sweeps=cfg.min_sweeps, average_last=cfg.average_last, max_support=cfg.max_support,
-              fit_points=cfg.fit_points, fit_iter=cfg.fit_iter, seed=cfg.seed, progress=progress,
+              fit_points=cfg.fit_points, fit_iter=cfg.fit_iter, exclusion_s=cfg.exclusion_s, seed=cfg.seed,
+              progress=progress,
               gp_kwargs={"ard": cfg.ard, "objective": cfg.objective, "device": cfg.device})
     mode_selection = None
     if cfg.modes == "auto":
-        sem, mode_selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), starts=feats.starts, **kw)
+        sem, mode_selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), t=feats.t, starts=feats.starts, **kw)
     else:
-        sem = MultimodalSEM(n_modes=int(cfg.modes), **kw).fit(feats.X, feats.Y, starts=feats.starts)
+        sem = MultimodalSEM(n_modes=int(cfg.modes), **kw).fit(feats.X, feats.Y, t=feats.t, starts=feats.starts)
     joint_names = logs[0].joint_names or (robot.joint_names if robot is not None else
                                           [f"joint_{j}" for j in range(logs[0].n_joints)])
     robot_spec = None
