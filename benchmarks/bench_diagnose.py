@@ -111,16 +111,19 @@ def runtime_10k():
 
 
 def real_panda(root="/work/shared/datasets/panda_gaz2019"):
-    d = Path(root) / "rbt_log"
-    if not d.is_dir():
+    if not (Path(root) / "rbt_log").is_dir():
         print("\nreal Panda log not found; skipped")
         return
-    t = np.loadtxt(d / "exciting_traj_time.txt")
-    q = np.loadtxt(d / "exciting_traj_positions.txt").reshape(-1, 7)
-    dq = np.loadtxt(d / "exciting_traj_velocity.txt").reshape(-1, 7)
-    tau = np.loadtxt(d / "exciting_traj_torques.txt").reshape(-1, 7)
-    keep = np.concatenate([[True], np.diff(t) > 0])
-    log = RobotLog(path=str(d), t=t[keep], q=q[keep], tau=tau[keep], dq=dq[keep], metadata={})
+    import tempfile
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "datasets"))
+    from convert_real import convert_panda_gaz2019
+    from mmgp.io import read_log
+
+    with tempfile.TemporaryDirectory() as tmp:
+        # the project's converter (ddq left out: diagnose estimates it from dq)
+        path = convert_panda_gaz2019(Path(tmp))[0]
+        log = read_log(path)
     from mmgp.robot import RobotModel
 
     robot = RobotModel.from_name("panda", [f"panda_joint{i}" for i in range(1, 8)])

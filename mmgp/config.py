@@ -24,6 +24,7 @@ class TrainConfig:
         "feature" (tau_rbd is an extra GP input) or "none".
     exclusion_s: samples within this many seconds of a sample are left out of its likelihood
         (leave-window-out; 0 = plain leave-one-out).
+    friction_feature: add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step).
     max_support / fit_points / fit_iter / max_sweeps / min_sweeps / average_last: see MultimodalSEM.
     objective: "loo" (full LOO log predictive) or "marginal".
     ard: per-input lengthscales.
@@ -39,6 +40,7 @@ class TrainConfig:
     diff_window_s: float | None = None
     semiparametric: str = "residual"
     exclusion_s: float = 1.0
+    friction_feature: bool = True
     max_support: int = 1000
     fit_points: int = 600
     fit_iter: int = 50

@@ -55,19 +55,34 @@ class Features:
     t: np.ndarray | None = None
 
 
-def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None) -> Features:
+def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
+    """Per-joint velocity scale v_s (n,) of the smooth sign tanh(dq / v_s): 5% of the joint's
+    95th-percentile speed, so the sign saturates for all but the slowest samples on any robot."""
+    v = 0.05 * np.percentile(np.abs(dq), 95, axis=0)
+    return np.maximum(v, 1e-6)
+
+
+def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
+                   friction_scale: np.ndarray | None = None) -> Features:
+    """GP inputs [q, dq, ddq, tanh(dq / v_s)(, tau_rbd)] and targets from checked logs."""
     q = np.concatenate([lg.q for lg in logs])
     dq = np.concatenate([lg.dq for lg in logs])
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = _features(q, dq, ddq, tau, semiparametric, robot, starts)
+    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale)
     f.t = np.concatenate([lg.t for lg in logs])
     return f
 
 
-def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,)) -> Features:
-    X = np.concatenate([q, dq, ddq], axis=1)
+def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None) -> Features:
+    # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
+    # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
+    # step to the GP directly, so lengthscales can stay long.
+    parts = [q, dq, ddq]
+    if friction_scale is not None:
+        parts.append(np.tanh(dq / friction_scale))
+    X = np.concatenate(parts, axis=1)
     tau_rbd = None
     if robot is not None and semiparametric != "none":
         tau_rbd = robot.rnea(q, dq, ddq)
@@ -87,8 +102,9 @@ class TrainedModel:
 
     def __init__(self, *, config: TrainConfig, joint_names: list[str], support_X: list[np.ndarray],
                  support_Y: list[np.ndarray], hypers: list[Hyper], robot_spec: dict | None = None,
-                 report: dict | None = None):
+                 friction_scale: np.ndarray | None = None, report: dict | None = None):
         self.config = config
+        self.friction_scale_ = None if friction_scale is None else np.asarray(friction_scale, dtype=np.float64)
         self.joint_names_ = list(joint_names)
         self.support_X_ = [np.asarray(a, dtype=np.float64) for a in support_X]
         self.support_Y_ = [np.asarray(a, dtype=np.float64) for a in support_Y]
@@ -132,7 +148,8 @@ class TrainedModel:
         """Torque mean and std (T, n) in ``mode`` at states q, dq, ddq (T, n)."""
         q, dq, ddq = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (q, dq, ddq))
         semi = self.config.semiparametric if self.robot_spec else "none"
-        f = _features(q, dq, ddq, np.zeros_like(q), semi, self.robot if self.robot_spec else None)
+        f = _features(q, dq, ddq, np.zeros_like(q), semi, self.robot if self.robot_spec else None,
+                      friction_scale=self.friction_scale_)
         mean, std = self.gp(mode).predict(f.X, include_noise=True)
         mean, std = mean.reshape(len(q), -1), std.reshape(len(q), -1)
         if f.tau_rbd is not None and semi == "residual":
@@ -155,6 +172,8 @@ class TrainedModel:
             arrays[f"lengthscale_{k}"] = self.hypers_[k].lengthscale
             arrays[f"signal_var_{k}"] = self.hypers_[k].signal_var
             arrays[f"noise_var_{k}"] = self.hypers_[k].noise_var
+        if self.friction_scale_ is not None:
+            arrays["friction_scale"] = self.friction_scale_
         np.savez(out_dir / "model.npz", **arrays)
         meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
                 "n_modes": self.n_modes, "joint_names": self.joint_names_, "config": self.config.as_dict(),
@@ -176,8 +195,9 @@ class TrainedModel:
             sx = [z[f"X_{k}"] for k in range(K)]
             sy = [z[f"Y_{k}"] for k in range(K)]
             hy = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
+            fs = z["friction_scale"] if "friction_scale" in z.files else None
         return cls(config=TrainConfig(**meta["config"]), joint_names=meta["joint_names"], support_X=sx,
-                   support_Y=sy, hypers=hy, robot_spec=meta.get("robot"))
+                   support_Y=sy, hypers=hy, robot_spec=meta.get("robot"), friction_scale=fs)
 
 
 @dataclass
@@ -196,7 +216,9 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     logs = load_logs(paths, cfg, robot)
     t_load = time.perf_counter() - t0
     semi = cfg.semiparametric if robot is not None else "none"
-    feats = build_features(logs, semi, robot)
+    fscale = (friction_velocity_scale(np.concatenate([lg.dq for lg in logs]))
+              if cfg.friction_feature else None)
+    feats = build_features(logs, semi, robot, fscale)
     kw = dict(disturbance=cfg.disturbance, estep=cfg.estep, stay_prob=cfg.stay_prob, max_sweeps=cfg.max_sweeps,
               min_sweeps=cfg.min_sweeps, average_last=cfg.average_last, max_support=cfg.max_support,
               fit_points=cfg.fit_points, fit_iter=cfg.fit_iter, exclusion_s=cfg.exclusion_s, seed=cfg.seed,
@@ -216,7 +238,7 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
                       "joint_names": robot.joint_names}
     hypers = [g.hyper_ for g in sem.gps_]
     model = TrainedModel(config=cfg, joint_names=joint_names, support_X=sem.support_X_, support_Y=sem.support_Y_,
-                         hypers=hypers, robot_spec=robot_spec)
+                         hypers=hypers, robot_spec=robot_spec, friction_scale=fscale)
     model._robot = robot
     report = {
         "mmgp_version": __version__,
@@ -235,7 +257,7 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
                 {"joint": joint_names[j], "lengthscale": g.lengthscale_[j].tolist(),
                  "signal_std": float(math.sqrt(g.hyper_.signal_var[j]) * g.y_scaler_.scale_[j]),
                  "noise_std": float(g.noise_std_[j])} for j in range(len(joint_names))],
-             "inputs": _input_names(len(joint_names), semi == "feature"),
+             "inputs": _input_names(len(joint_names), semi == "feature", fscale is not None),
              "n_support": int(len(sem.support_Y_[k]))}
             for k, g in enumerate(sem.gps_)],
         "disturbance": {"enabled": cfg.disturbance, "sigma_d_std": np.sqrt(sem.sigma_d_).tolist(),
@@ -253,8 +275,10 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     return TrainResult(model, sem, logs, feats, report)
 
 
-def _input_names(n: int, with_rbd: bool) -> list[str]:
+def _input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:
     names = [f"q_{j}" for j in range(n)] + [f"dq_{j}" for j in range(n)] + [f"ddq_{j}" for j in range(n)]
+    if with_friction:
+        names += [f"tanh(dq_{j}/v_s)" for j in range(n)]
     if with_rbd:
         names += [f"tau_rbd_{j}" for j in range(n)]
     return names

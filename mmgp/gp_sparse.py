@@ -1,0 +1,192 @@
+"""Scalable GP for logs of 10^4-10^5 samples: SGPR (Titsias 2009) with k-means inducing inputs.
+
+Chosen on evidence (benchmarks/bench_real_gp.py, real Barrett WAM and SARCOS): against an exact
+GP on a random subset of the same size budget ("subset of data"), the inducing-point predictor
+that sees every sample is more accurate at similar cost; see benchmarks/README.md.
+
+Model, per output j (batched over outputs by a loop, to keep memory at O(N M)):
+inducing inputs Z (M, d) are k-means centres of the standardised inputs (shared by all outputs);
+with Kuu = k(Z, Z), Kuf = k(Z, X), noise variance s2, the collapsed variational posterior
+(Titsias' SGPR, identical in mean to DTC / projected process) is
+
+    Sigma  = (Kuu + Kuf Kfu / s2)^-1
+    mean*  = K*u Sigma Kuf y / s2
+    var*   = k** - K*u Kuu^-1 Ku* + K*u Sigma Ku*          (+ s2 with include_noise)
+
+computed through L = chol(Kuu), A = L^-1 Kuf / s (M, N), B = I + A A^T, LB = chol(B):
+O(N M^2) time, O(N M) memory per output.
+
+Hyperparameters: the exact GP's LOO objective (``mmgp.gp.optimise_hyper``) on a random subset of
+``max_fit_points`` samples, the same procedure as ``ExactGP`` (so ``hyper_`` means the same thing
+and can be passed between the two).
+
+``loo_predictive`` is the exact closed-form LOO of the approximate (Nystrom / DTC) model, whose
+prior covariance is Qff + s2 I with Qff = Kfu Kuu^-1 Kuf: with A as above,
+(Qff + s2 I)^-1 = (I - A^T B^-1 A) / s2, so its diagonal and (Qff + s2 I)^-1 y cost O(N M^2).
+It is not the LOO of the exact GP: Qff underestimates the prior variance away from Z, so these
+LOO variances are somewhat optimistic where inducing points are sparse.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .gp import (DTYPE, LOG_2PI, ExactGP, Hyper, Standardiser, default_hyper, fit_hyper_subsets,
+                 rbf_kernel, resolve_device, robust_cholesky)
+
+
+def kmeans_inducing(Xs: np.ndarray, n_inducing: int, seed: int = 0) -> np.ndarray:
+    """Inducing inputs (M, d): k-means centres of the standardised inputs Xs (N, d).
+
+    Centres follow the data density, so inducing points sit where the trajectory spends time;
+    duplicated centres (empty clusters) are dropped.
+    """
+    from sklearn.cluster import KMeans
+
+    M = min(n_inducing, Xs.shape[0])
+    if M == Xs.shape[0]:
+        return Xs.copy()
+    km = KMeans(n_clusters=M, n_init=1, max_iter=50, random_state=seed).fit(Xs)
+    return np.unique(km.cluster_centers_, axis=0)
+
+
+class SparseGP:
+    """SGPR with k-means inducing inputs; the ``ExactGP`` API for large N.
+
+    Parameters: as ``ExactGP`` (ard, objective, max_fit_points, max_iter, noise_floor, device,
+    seed, coarse_fit_points), plus ``n_inducing`` (M, default 1000; cost O(N M^2 m)).
+
+    Learned: ``hyper_`` (standardised units, same meaning as ExactGP's), ``Z_`` (M, d)
+    standardised inducing inputs, ``lengthscale_`` (m, d) and ``noise_std_`` (m,) in data units,
+    ``objective_value_`` (per-sample LOO objective of the exact GP on the fitting subset).
+    """
+
+    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
+                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
+                 coarse_fit_points: int = 300, n_inducing: int = 1000):
+        self.ard = ard
+        self.objective = objective
+        self.max_fit_points = max_fit_points
+        self.max_iter = max_iter
+        self.noise_floor = noise_floor
+        self.device = device
+        self.seed = seed
+        self.coarse_fit_points = coarse_fit_points
+        self.n_inducing = n_inducing
+
+    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "SparseGP":
+        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
+        X = np.asarray(X, dtype=np.float64)
+        Y = np.asarray(Y, dtype=np.float64)
+        self._vector_output = Y.ndim == 1
+        if Y.ndim == 1:
+            Y = Y[:, None]
+        if X.ndim != 2 or Y.shape[0] != X.shape[0]:
+            raise ValueError(f"X must be (N, d) and Y (N, m) with the same N; got {X.shape} and {Y.shape}")
+        self.dev_ = resolve_device(self.device)
+        self.x_scaler_ = Standardiser().fit(X)
+        self.y_scaler_ = Standardiser().fit(Y)
+        Xn = self.x_scaler_.transform(X)
+        Xs = torch.as_tensor(Xn, dtype=DTYPE, device=self.dev_)
+        Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
+        init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
+        self.objective_value_ = float("nan")
+        if optimise:
+            # Same procedure as ExactGP: the exact GP's hyperparameters on a subset.
+            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
+        self.hyper_ = init
+        self.Z_ = kmeans_inducing(Xn, self.n_inducing, self.seed)
+        self._condition(Xs, Ys)
+        return self
+
+    def _condition(self, Xs: torch.Tensor, Ys: torch.Tensor) -> None:
+        ls, sf, sn = self.hyper_.to_torch(self.dev_)
+        Z = torch.as_tensor(self.Z_, dtype=DTYPE, device=self.dev_)
+        M = Z.shape[0]
+        eye = torch.eye(M, dtype=DTYPE, device=self.dev_)
+        self.L_, self.LB_, self.w_, self.jitter_ = [], [], [], 0.0
+        loo_mean, loo_var = [], []
+        for j in range(Ys.shape[1]):
+            Kuu = rbf_kernel(Z, Z, ls[j:j + 1], sf[j:j + 1])[0]
+            L, jit = robust_cholesky(Kuu, base_jitter=1e-8)
+            Kuf = rbf_kernel(Z, Xs, ls[j:j + 1], sf[j:j + 1])[0]                  # (M, N)
+            A = torch.linalg.solve_triangular(L, Kuf, upper=False) / torch.sqrt(sn[j])
+            del Kuf
+            LB, jit_b = robust_cholesky(eye + A @ A.T)
+            y = Ys[:, j]
+            c = torch.linalg.solve_triangular(LB, (A @ y)[:, None], upper=False)[:, 0] / torch.sqrt(sn[j])
+            # mean weights: mean* = K*u w with w = L^-T LB^-T c
+            w = torch.linalg.solve_triangular(L.T, torch.linalg.solve_triangular(LB.T, c[:, None], upper=True),
+                                              upper=True)[:, 0]
+            # LOO of the DTC model: (Qff + s2 I)^-1 = (I - A^T B^-1 A) / s2
+            V = torch.linalg.solve_triangular(LB, A, upper=False)                  # (M, N)
+            diag = (1.0 - (V * V).sum(0)) / sn[j]
+            alpha = (y - V.T @ (V @ y)) / sn[j]
+            loo_mean.append(y - alpha / diag)
+            loo_var.append(1.0 / diag)
+            self.L_.append(L)
+            self.LB_.append(LB)
+            self.w_.append(w)
+            self.jitter_ = max(self.jitter_, jit, jit_b)
+        self._loo_s = (torch.stack(loo_mean, 1), torch.stack(loo_var, 1))  # standardised (N, m)
+        self.Ys_ = Ys
+        self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
+        self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
+
+    def _out(self, a: np.ndarray) -> np.ndarray:
+        return a[:, 0] if self._vector_output else a
+
+    def predict(self, X: np.ndarray, *, include_noise: bool = False, return_std: bool = True):
+        """Posterior mean (M, m) and std (M, m) at X (M, d), in data units (SGPR predictive)."""
+        Xq = torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE, device=self.dev_)
+        ls, sf, sn = self.hyper_.to_torch(self.dev_)
+        Z = torch.as_tensor(self.Z_, dtype=DTYPE, device=self.dev_)
+        means, vars_ = [], []
+        chunk_size = max(64, int(4e6 // Z.shape[0]))
+        for j in range(len(self.w_)):
+            m_j, v_j = [], []
+            for Xc in torch.split(Xq, chunk_size):
+                Ksu = rbf_kernel(Xc, Z, ls[j:j + 1], sf[j:j + 1])[0]                # (Q, M)
+                m_j.append(Ksu @ self.w_[j])
+                if return_std:
+                    V1 = torch.linalg.solve_triangular(self.L_[j], Ksu.T, upper=False)
+                    V2 = torch.linalg.solve_triangular(self.LB_[j], V1, upper=False)
+                    var = (sf[j] - (V1 * V1).sum(0) + (V2 * V2).sum(0)).clamp_min(1e-12)
+                    v_j.append(var + sn[j] if include_noise else var)
+            means.append(torch.cat(m_j))
+            if return_std:
+                vars_.append(torch.cat(v_j))
+        mean = torch.stack(means, 1).cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
+        if not return_std:
+            return self._out(mean)
+        std = np.sqrt(torch.stack(vars_, 1).cpu().numpy()) * self.y_scaler_.scale_
+        return self._out(mean), self._out(std)
+
+    def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
+        """Closed-form LOO mean and std (N, m) of the training outputs under the DTC approximate model."""
+        mu, var = self._loo_s
+        mean = mu.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
+        std = np.sqrt(var.cpu().numpy()) * self.y_scaler_.scale_
+        return self._out(mean), self._out(std)
+
+    def loo_log_predictive(self) -> float:
+        """Sum over samples and outputs of the (DTC-model) LOO log predictive density, in data units."""
+        mean, std = self.loo_predictive()
+        Y = self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
+        if self._vector_output:
+            mean, std = mean[:, None], std[:, None]
+        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+
+
+_SPARSE_ONLY = ("n_inducing",)
+
+
+def make_gp(n_samples: int, *, exact_threshold: int = 3000, **kw):
+    """``ExactGP(**kw)`` for ``n_samples <= exact_threshold``, else ``SparseGP(**kw)``.
+
+    Sparse-only settings (``n_inducing``) are dropped for the exact GP, so one set of keyword
+    arguments serves both.
+    """
+    if n_samples <= exact_threshold:
+        return ExactGP(**{k: v for k, v in kw.items() if k not in _SPARSE_ONLY})
+    return SparseGP(**kw)
