@@ -5,7 +5,9 @@ Held-out normalised MSE per joint of rigid-body only (nominal URDF, RNEA), GP on
 read the log, complete the derivatives with mmgp's defaults (ddq from the logged dq), time-block
 folds with the default gap. Must-show: rigid-body + GP cuts the rigid-body error on every joint.
 
-Run: ``python benchmarks/bench_compare_real.py [--out DIR] [--folds 5] [--max-train 2000] [--fit-points 400]``.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_compare_real.py [--out DIR] [--folds 5] [--max-train 2000]
+[--fit-points 400]`` (about 510 s with the defaults, 140 s with ``--max-train 600 --fit-points 300
+--iters 40``, on 2 busy CPU cores).
 The shared datasets folder is ``$MMGP_SHARED_DATASETS`` (default ``<repo>/../shared/datasets``).
 """
 from __future__ import annotations

@@ -14,7 +14,8 @@ Parts (``--part``, default all):
 * ``ur10``: the real UR10 pick-and-place log (polydoros_ur10_pickplace, authors: a 5 kg object):
   what the logged torques can and cannot say about a payload at ``tool0``.
 
-Run: ``python benchmarks/bench_payload.py [--part sim|modes|ur10|all]``.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_payload.py [--part sim|modes|ur10|all] [--no-em]``
+(one torch thread: much faster on a shared CPU; the EM of ``modes`` took 470-580 s on 2 busy cores).
 """
 from __future__ import annotations
 

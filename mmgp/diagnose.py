@@ -59,11 +59,15 @@ class DiagnoseConfig:
     filter: low-pass residual and regressor columns alike (parallel filtering) at a cutoff set
         by the trajectory's bandwidth, so noise in estimated accelerations does not bias the fit.
     plots: write PNGs with ``write``.
+    modes: test for a payload that switches between two values (mode_switch); mode_folds,
+        mode_max_samples: time blocks and (thinned) samples of that test.
     state_check: also drop flagged spans whose residual the joints' own state explains (kNN);
         off by default: physics-first scanning and the rest mask already remove such misfit, and
         on 1-DOF logs with long pushes the neighbours themselves are pushed samples.
     load_from_log: load-dependent friction scales with the low-passed logged torque (True) or
-        with the nominal model's torque (False).
+        with the nominal model's torque (False, default: the logged torque contains the friction
+        itself, so on joints whose torque is mostly friction |tau| * sign(dq) fits friction with
+        beta ~ 1 -- an endogenous regressor).
     push_alpha: family-wise false-alarm level of the push scan over the log's independent samples.
     rest_factor: a joint's equation is left out where |dq| < rest_factor * v_s (the velocity is
         within noise of zero, widened by the filter's memory): at rest friction takes any value
@@ -86,8 +90,11 @@ class DiagnoseConfig:
     plots: bool = True
     rest_factor: float = 1.0
     push_alpha: float = 0.001
-    load_from_log: bool = True
+    load_from_log: bool = False
     state_check: bool = False
+    modes: bool = True
+    mode_folds: int = 10
+    mode_max_samples: int = 1500
     max_steps: int | None = None
     filter: bool = True
     seed: int = 0
@@ -224,7 +231,8 @@ class ForwardCVSelector:
     """
 
     def __init__(self, se_rule: float = 1.0, max_steps: int | None = None, *, rule: str = "bonferroni",
-                 alpha: float = 0.05):
+                 alpha: float = 0.05, reach: float | None = None):
+        self.reach = reach
         self.se_rule = se_rule
         self.max_steps = max_steps
         self.rule = rule
@@ -240,12 +248,19 @@ class ForwardCVSelector:
                     S.append(i)
         return S
 
-    @staticmethod
-    def _admissible(effs, S, th, keys):
+    def _admissible(self, effs, S, th, keys):
         pos = {keys[i]: v for i, v in zip(S, th)}
         for e in effs:
             for a in e.nonneg:
                 if pos[a] < 0:
+                    return False
+            reach = getattr(self, "reach", None)
+            if isinstance(e, fx.Payload) and reach:
+                # a payload is attached to the robot: its centre of mass lies within the robot's
+                # reach of the link frame (else it is first-moment columns fitting something else)
+                m = pos[("pl", e.index, 0)]
+                h = np.array([pos[("pl", e.index, i)] for i in (1, 2, 3)])
+                if m <= 0 or np.linalg.norm(h) > reach * m:
                     return False
         return True
 
@@ -318,6 +333,16 @@ class ForwardCVSelector:
                 if not ok:
                     break
                 m, e, ef, tt = min(ok, key=lambda c: c[0])
+                if isinstance(e, fx.Payload):
+                    # a mass on joint i+1's axis loads the joints exactly as the same mass on
+                    # link i does: among payloads the data cannot tell apart (held-out error
+                    # within one standard error of the best one's gain: the classic 1-SE rule),
+                    # report the most distal, where loads are attached
+                    se = np.std(cur - ef, ddof=1) / np.sqrt(K)
+                    for c in sorted(ok, key=lambda c: -c[1].index):
+                        if isinstance(c[1], fx.Payload) and c[1].index > e.index and c[0] - m <= se:
+                            m, e, ef, tt = c
+                            break
             else:
                 m, e, ef, tt = min(cand, key=lambda c: c[0])
             chosen = chosen + [e]
@@ -422,6 +447,98 @@ def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None
     few = M.sum(0) < 0.1 * T
     M[:, few] = 1.0
     return M
+
+
+# --------------------------------------------------------------------------------------------
+# Mode switches: a two-state switching regression on what the selected physics leaves
+# --------------------------------------------------------------------------------------------
+
+def _hmm_filter(ll: np.ndarray, stay: float, smooth: bool = True):
+    """Two-state forward(-backward) pass. ``ll`` (T, 2) log-likelihoods. Returns (posterior or
+    filtered state probabilities (T, 2), one-step predictive probabilities (T, 2))."""
+    T = ll.shape[0]
+    P = np.array([[stay, 1 - stay], [1 - stay, stay]])
+    alpha = np.empty((T, 2))
+    pred = np.empty((T, 2))
+    p = np.array([0.5, 0.5])
+    lik = np.exp(ll - ll.max(1, keepdims=True))
+    for i in range(T):
+        pred[i] = p
+        a = p * lik[i]
+        a /= a.sum()
+        alpha[i] = a
+        p = a @ P
+    if not smooth:
+        return alpha, pred
+    post = np.empty((T, 2))
+    post[-1] = alpha[-1]
+    for i in range(T - 2, -1, -1):
+        b = post[i + 1] / np.maximum(pred[i + 1], 1e-300)
+        g = alpha[i] * (P @ b)
+        post[i] = g / g.sum()
+    return post, pred
+
+
+def _fit_switching(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, n_iter: int = 25):
+    """EM for e_t = C_t theta_{s_t} + noise, s_t a sticky two-state Markov chain.
+
+    ``C`` (T, n, p) columns, ``e`` (T, n) residual, ``w`` (n,) inverse noise variances, ``V``
+    (T, n) sample weights. Returns (theta (2, p), stay probability, posterior (T, 2)). Started
+    from a split of the time axis at the median of windowed single-state fits' first coefficient.
+    """
+    T, n, p = C.shape
+    Wv = V * w[None, :]
+    Gt = np.einsum("tj,tjp,tjq->tpq", Wv, C, C).reshape(T, p * p)
+    ct = np.einsum("tj,tjp,tj->tp", Wv, C, e)
+
+    def wls(g):
+        return FoldGrams._solve((g @ Gt).reshape(p, p), g @ ct)
+
+    # start: windowed fits of the first coefficient (mass), split at their median
+    nw = 8
+    edges = np.linspace(0, T, nw + 1).astype(int)
+    loc = np.array([wls(((np.arange(T) >= a) & (np.arange(T) < b)).astype(float))[0] for a, b in zip(edges[:-1], edges[1:])])
+    hi = np.zeros(T)
+    for (a, b), v in zip(zip(edges[:-1], edges[1:]), loc):
+        hi[a:b] = float(v > np.median(loc))
+    post = np.stack([1 - hi, hi], 1)
+    stay = 1 - 1.0 / max(T / 4, 2)
+    th = np.zeros((2, p))
+    for _ in range(n_iter):
+        th = np.array([wls(post[:, k]) for k in range(2)])
+        ll = np.stack([-0.5 * (Wv * (e - C @ th[k]) ** 2).sum(1) for k in range(2)], 1)
+        post, _ = _hmm_filter(ll, stay)
+        # expected switches from consecutive posteriors (a cheap, slightly low estimate)
+        sw = np.abs(np.diff(post[:, 1])).sum()
+        stay = float(np.clip(1 - (sw + 1) / T, 0.5, 1 - 1.0 / T))
+    return th, stay, post
+
+
+def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, folds) -> dict:
+    """Held-out comparison of one versus two modes for the effect with columns ``C``.
+
+    For each time-block fold both models are fitted on the training part; on the test block the
+    two-mode model predicts each sample with its state probabilities given the test block's
+    *earlier* samples only (HMM one-step predictive), so the comparison stays out of sample.
+    Returns {"d": (K,) held-out weighted SSE one-mode minus two-mode, "p": one-sided signed-rank
+    p-value, and the all-data fit: "theta" (2, p), "post" (T, 2), "stay"}.
+    """
+    T, n, p = C.shape
+    Wv = V * w[None, :]
+    d = []
+    for tr, te in folds:
+        Ctr, etr, Wtr = C[tr], e[tr], Wv[tr]
+        th1 = FoldGrams._solve(np.einsum("tj,tjp,tjq->pq", Wtr, Ctr, Ctr), np.einsum("tj,tjp,tj->p", Wtr, Ctr, etr))
+        err1 = (Wv[te] * (e[te] - C[te] @ th1) ** 2).sum()
+        th2, stay, _ = _fit_switching(C[tr], e[tr], w, V[tr], n_iter=15)
+        ll = np.stack([-0.5 * (Wv[te] * (e[te] - C[te] @ th2[k]) ** 2).sum(1) for k in range(2)], 1)
+        _, pred = _hmm_filter(ll, stay, smooth=False)
+        mu = pred[:, 0, None] * (C[te] @ th2[0]) + pred[:, 1, None] * (C[te] @ th2[1])
+        err2 = (Wv[te] * (e[te] - mu) ** 2).sum()
+        d.append(err1 - err2)
+    d = np.array(d)
+    th, stay, post = _fit_switching(C, e, w, V)
+    return {"d": d, "p": ForwardCVSelector.paired_p(d), "theta": th, "post": post, "stay": stay}
 
 
 # --------------------------------------------------------------------------------------------
@@ -743,6 +860,9 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
     r = lp(r_raw)
 
     library = fx.effect_library(ctx, effects=cfg.effects, payload_links=cfg.payload_links)
+    pm = fx._pin_model(robot)
+    reach = float(sum(np.linalg.norm(pm.jointPlacements[j].translation) for j in range(1, pm.njoints)))
+    reach = reach if reach > 0 else None
     payloads = [e for e in library if isinstance(e, fx.Payload)]
     M = valid_mask(dq, vs, t, f_c, factor=cfg.rest_factor)
 
@@ -826,7 +946,7 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         w0 = _joint_weights(r - A @ th, M)
         g0 = FoldGrams(A, r, np.ones(T, bool), folds0, W=M * huber["h"])
         sel0 = ForwardCVSelector(se_rule=cfg.se_rule, max_steps=cfg.max_steps, rule=cfg.rule,
-                                 alpha=cfg.alpha).fit(library, keys, g0, w0)
+                                 alpha=cfg.alpha, reach=reach).fit(library, keys, g0, w0)
         S0 = ForwardCVSelector._atoms(sel0.selected_, {a: i for i, a in enumerate(keys)})
         e0 = r - (A[:, :, S0] @ g0.fit(S0, w0) if S0 else 0.0)
         disturbed, sep_info_scan = scan_disturbances(e0, t, f_c=f_c, valid=M > 0, alpha=cfg.push_alpha)
@@ -857,7 +977,7 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
     folds = _folds(T, K, t, f_c)
     grams = FoldGrams(A, r, use, folds, W=M)
     sel = ForwardCVSelector(se_rule=cfg.se_rule, max_steps=cfg.max_steps, rule=cfg.rule,
-                            alpha=cfg.alpha).fit(library, keys, grams, w)
+                            alpha=cfg.alpha, reach=reach).fit(library, keys, grams, w)
     chosen = sel.selected_
     timings["select_s"] = time.perf_counter() - t0 - sum(timings.values())
 
@@ -967,6 +1087,91 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
     fit["folds"] = K
     fit["samples_used"] = int(use.sum())
     fit["samples_excluded_as_disturbed"] = int((~use).sum())
+
+    # mode switches: does a payload that changes over time (two sticky states) predict the
+    # held-out residual better than one fixed payload?
+    mode_info = None
+    if cfg.modes and payloads:
+        tm0 = time.perf_counter()
+        e_all = r - (A[:, :, S] @ thS if S else 0.0)
+        step = max(1, int(np.floor(1.0 / (4.0 * f_c * float(np.median(np.diff(t)))))) if f_c else 1)
+        step = max(step, int(np.ceil(T / cfg.mode_max_samples)))
+        idx = np.arange(0, T, step)
+        folds_m = _folds(len(idx), cfg.mode_folds, t[idx], f_c)
+        tests = []
+        for e in payloads:
+            cols = [kidx[("pl", e.index, i)] for i in range(4)]
+            res_m = mode_switch_test(A[idx][:, :, cols], e_all[idx], w, M[idx], folds_m)
+            tests.append((e, res_m))
+        def base_of(e):
+            if e in chosen:
+                return np.array([thS[S.index(kidx[("pl", e.index, i)])] for i in range(4)])
+            return np.zeros(4)
+
+        # physical: both modes' masses non-negative, centres of mass within reach
+        def admissible(e, rm):
+            for k in range(2):
+                th_k = base_of(e) + rm["theta"][k]
+                if th_k[0] < 0 or (th_k[0] > 0 and reach and np.linalg.norm(th_k[1:]) > reach * th_k[0]):
+                    return False
+            return True
+
+        best = [(e, rm) for e, rm in tests if rm["p"] < cfg.alpha / len(tests) and admissible(e, rm)]
+        if best:
+            e, rm = max(best, key=lambda x: x[1]["d"].mean())
+            se = np.std(rm["d"], ddof=1) / np.sqrt(len(rm["d"]))
+            for e2, rm2 in sorted(best, key=lambda x: -x[0].index):
+                # as for payloads: of links the data cannot tell apart, the most distal
+                if e2.index > e.index and rm["d"].mean() - rm2["d"].mean() <= se:
+                    e, rm = e2, rm2
+                    break
+            post = rm["post"]
+            lab_d = post.argmax(1)
+            lab = lab_d[np.minimum(np.round(np.arange(T) / step).astype(int), len(idx) - 1)]
+            base = base_of(e)
+            per_mode = []
+            for k in range(2):
+                th_k = base + rm["theta"][k]
+                mk = float(th_k[0])
+                per_mode.append({"link": ctx.link_names[e.index], "mass": mk,
+                                 "com": [float(x) for x in (th_k[1:] / mk if mk > 0 else np.full(3, np.nan))],
+                                 "fraction": float((lab == k).mean())})
+            order = np.argsort([pm["mass"] for pm in per_mode])
+            per_mode = [per_mode[i] for i in order]
+            lab = np.argsort(order)[lab]
+            sw_t = [float(t[i]) for i in np.flatnonzero(np.diff(lab) != 0) + 1]
+            mode_info = {"effect": e, "labels": lab, "test": rm}
+            findings.append({
+                "effect": "mode_switch", "joint": None,
+                "params": {"n_modes": 2, "per_mode": per_mode, "switch_times_s": sw_t[:100],
+                           "labels_per_sample": None},
+                "evidence": {"held_out_gain_per_fold": rm["d"].tolist(), "p_value": rm["p"],
+                             "criterion": f"{cfg.mode_folds}-fold time-block CV of one vs two payload modes "
+                                          "(HMM one-step predictive on held-out blocks), signed-rank test, "
+                                          f"family-wise level {cfg.alpha:g} over {len(tests)} links"},
+                "explanation": (f"the dynamics switch between two modes ({len(sw_t)} switch(es)): a payload on "
+                                f"{per_mode[0]['link']} of {per_mode[0]['mass']:.3g} kg "
+                                f"({100 * per_mode[0]['fraction']:.0f}% of the time) and {per_mode[1]['mass']:.3g} kg "
+                                f"({100 * per_mode[1]['fraction']:.0f}%); two modes cut the held-out error in "
+                                f"{int((rm['d'] > 0).sum())} of {len(rm['d'])} time blocks.")})
+            # the single payload on that link is the modes' average: the mode finding replaces it
+            findings[:] = [f for f in findings if not (f["effect"] == "payload" and f.get("link") == ctx.link_names[e.index])]
+            if labels_disturbed is None and cfg.separate == "auto":
+                # pushes are looked for again once the modes explain their part of the residual
+                mu = np.zeros_like(r)
+                cols = [kidx[("pl", e.index, i)] for i in range(4)]
+                for k in range(2):
+                    kk = order[k]
+                    mu += (lab == k)[:, None] * (A[:, :, cols] @ rm["theta"][kk])
+                # within the filter's memory of a switch the filtered residual mixes both modes
+                near = np.zeros(T, bool)
+                h = int(round(0.5 / (f_c * float(np.median(np.diff(t)))))) if f_c else 0
+                for i in np.flatnonzero(np.diff(lab) != 0) + 1:
+                    near[max(0, i - h - step):i + h + step] = True
+                disturbed, sep2 = scan_disturbances(e_all - mu, t, f_c=f_c, valid=(M > 0) & ~near[:, None],
+                                                    alpha=cfg.push_alpha)
+                sep_info.update(sep2)
+        timings["modes_s"] = time.perf_counter() - tm0
 
     if disturbed.any():
         spans = sep_info.get("spans", [(float(t[a]), float(t[b - 1])) for a, b in _runs(disturbed)])

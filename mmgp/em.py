@@ -336,7 +336,7 @@ class MultimodalSEM:
                  stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
                  tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
                  max_support: int = 1000, fit_points: int = 600, fit_iter: int = 50,
-                 exclusion_s: float = 1.0, gp_kwargs: dict | None = None, seed: int = 0,
+                 exclusion_s: float = 1.0, block_s: float = 2.0, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
             raise ValueError("n_modes must be >= 1")
@@ -355,6 +355,7 @@ class MultimodalSEM:
         self.fit_points = fit_points
         self.fit_iter = fit_iter
         self.exclusion_s = exclusion_s
+        self.block_s = block_s
         self.gp_kwargs = gp_kwargs or {}
         self.seed = seed
         self.progress = progress
@@ -372,14 +373,14 @@ class MultimodalSEM:
         if len(support) > self.max_support:
             support = np.sort(rng.choice(support, self.max_support, replace=False))
         gp = self._new_gp()
-        windowed = self._t_axis is not None and self.exclusion_s > 0
+        windowed = self._t_axis is not None and self.exclusion_s > 0 and self.block_s > 0
         if windowed and optimise:
             # Condition once on the fitting subset to get the standardisation, then tune there.
             fit_idx = support
             if len(fit_idx) > self.fit_points:
                 fit_idx = np.sort(rng.choice(support, self.fit_points, replace=False))
             gp.fit(X[fit_idx], Y[fit_idx], hyper=hyper or default_hyper(X.shape[1], Y.shape[1]), optimise=False)
-            hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, self._t_axis[fit_idx], self.exclusion_s,
+            hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, self._t_axis[fit_idx], self.block_s / 2.0,
                                             gp.hyper_, max_iter=self.fit_iter)
             optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)

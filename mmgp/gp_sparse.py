@@ -63,7 +63,10 @@ class SparseGP:
 
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
-                 coarse_fit_points: int = 300, n_inducing: int = 1000):
+                 coarse_fit_points: int = 300, n_inducing: int = 1000, method: str = "sgpr",
+                 n_subset: int = 3000):
+        self.method = method
+        self.n_subset = n_subset
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -95,6 +98,17 @@ class SparseGP:
             # Same procedure as ExactGP: the exact GP's hyperparameters on a subset.
             init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
         self.hyper_ = init
+        if self.method == "subset":
+            rng = np.random.default_rng(self.seed + 1)
+            self.subset_ = np.sort(rng.choice(len(X), min(self.n_subset, len(X)), replace=False))
+            self.exact_ = ExactGP(device=self.device).fit(X[self.subset_], Y[self.subset_], hyper=self.hyper_,
+                                                          optimise=False)
+            self._X, self._Y = X, Y
+            self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
+            self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
+            return self
+        if self.method != "sgpr":
+            raise ValueError(f"method must be 'sgpr' or 'subset', got {self.method!r}")
         self.Z_ = kmeans_inducing(Xn, self.n_inducing, self.seed)
         self._condition(Xs, Ys)
         return self
@@ -138,6 +152,8 @@ class SparseGP:
 
     def predict(self, X: np.ndarray, *, include_noise: bool = False, return_std: bool = True):
         """Posterior mean (M, m) and std (M, m) at X (M, d), in data units (SGPR predictive)."""
+        if self.method == "subset":
+            return self.exact_.predict(X, include_noise=include_noise, return_std=return_std)
         Xq = torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE, device=self.dev_)
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         Z = torch.as_tensor(self.Z_, dtype=DTYPE, device=self.dev_)
@@ -163,7 +179,18 @@ class SparseGP:
         return self._out(mean), self._out(std)
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
-        """Closed-form LOO mean and std (N, m) of the training outputs under the DTC approximate model."""
+        """LOO mean and std (N, m) of the training outputs.
+
+        "sgpr": closed form under the DTC approximate model. "subset": exact closed-form LOO for
+        the rows in the conditioning subset; the other rows are not conditioned on, so their
+        ordinary predictive (with noise) already leaves them out.
+        """
+        if self.method == "subset":
+            mean, std = self.exact_.predict(self._X, include_noise=True)
+            lm, ls = self.exact_.loo_predictive()
+            mean, std = np.array(mean), np.array(std)
+            mean[self.subset_], std[self.subset_] = lm, ls
+            return mean, std
         mu, var = self._loo_s
         mean = mu.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
         std = np.sqrt(var.cpu().numpy()) * self.y_scaler_.scale_
@@ -172,13 +199,13 @@ class SparseGP:
     def loo_log_predictive(self) -> float:
         """Sum over samples and outputs of the (DTC-model) LOO log predictive density, in data units."""
         mean, std = self.loo_predictive()
-        Y = self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
+        Y = self._Y if self.method == "subset" else self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
         if self._vector_output:
             mean, std = mean[:, None], std[:, None]
         return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
 
 
-_SPARSE_ONLY = ("n_inducing",)
+_SPARSE_ONLY = ("n_inducing", "method", "n_subset")
 
 
 def make_gp(n_samples: int, *, exact_threshold: int = 3000, **kw):

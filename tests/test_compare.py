@@ -16,6 +16,18 @@ from mmgp.signals import complete_derivatives, time_block_folds
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_torch_thread():
+    # The GP fits here are small (N <= 300): on a shared, oversubscribed CPU torch's intra-op
+    # threads made this file ~10x slower (measured 214 s vs 16 s). Restored afterwards.
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 # ---- normalised MSE -------------------------------------------------------------------------
 
 

@@ -6,7 +6,7 @@ import pytest
 
 from mmgp import concealed as C
 from mmgp import effects as fx
-from mmgp.diagnose import FoldGrams, ForwardCVSelector, diagnose
+from mmgp.diagnose import FoldGrams, ForwardCVSelector, diagnose, valid_mask
 from mmgp.signals import time_block_folds
 
 
@@ -25,7 +25,7 @@ def _synthetic_ctx(T=3000, n=3, seed=0):
 def _select(ctx, r):
     lib = fx.effect_library(ctx, effects=[e for e in fx.JOINT_EFFECTS if e != "encoder_offset"])
     keys, A = fx.build_atoms(lib, ctx)
-    grams = FoldGrams(A, r, np.ones(ctx.T, bool), time_block_folds(ctx.T, 8))
+    grams = FoldGrams(A, r, np.ones(ctx.T, bool), time_block_folds(ctx.T, 20))
     return ForwardCVSelector().fit(lib, keys, grams, np.ones(ctx.n)).selected_
 
 
@@ -43,10 +43,68 @@ def test_selection_rejects_pure_noise():
         assert _select(ctx, r) == []
 
 
+def test_small_coulomb_is_not_reported_as_load_dependent():
+    """Load dependence is nested in Coulomb friction: it is only tried as an extension."""
+    ctx, rng = _synthetic_ctx(seed=4)
+    r = 0.1 * rng.standard_normal((ctx.T, ctx.n))
+    r[:, 2] += 0.2 * np.tanh(ctx.dq[:, 2] / 0.02)
+    assert [(e.name, e.index) for e in _select(ctx, r)] == [("coulomb_friction", 2)]
+
+
+def test_weighted_fold_grams_match_direct_least_squares():
+    """Held-out errors from the per-fold Gram sums equal a direct weighted fit on each split."""
+    rng = np.random.default_rng(3)
+    T, n, P = 400, 2, 3
+    A = rng.standard_normal((T, n, P))
+    r = A @ np.array([0.5, -1.0, 0.2]) + 0.3 * rng.standard_normal((T, n))
+    W = (rng.uniform(size=(T, n)) > 0.3).astype(float)
+    use = rng.uniform(size=T) > 0.1
+    folds = time_block_folds(T, 5, gap=3)
+    g = FoldGrams(A, r, use, folds, W=W)
+    w = np.array([1.0, 2.0])
+    S = [0, 2]
+    got = g.cv_errors(S, w)
+    for k, (tr, te) in enumerate(folds):
+        tr, te = tr[use[tr]], te[use[te]]
+        # stack the weighted equations of both joints, joint j scaled by sqrt(w_j W_tj)
+        rows = [(A[tr, j][:, S] * np.sqrt(w[j] * W[tr, j])[:, None], r[tr, j] * np.sqrt(w[j] * W[tr, j])) for j in range(n)]
+        X = np.concatenate([a for a, _ in rows])
+        y = np.concatenate([b for _, b in rows])
+        th = np.linalg.lstsq(X, y, rcond=None)[0]
+        want = [(W[te, j] * (r[te, j] - A[te, j][:, S] @ th) ** 2).sum() for j in range(n)]
+        np.testing.assert_allclose(got[k], want, rtol=1e-7)
+        assert g.nte[k].tolist() == [(W[te, j] > 0).sum() for j in range(n)]
+
+
+def test_paired_p_matches_sign_flip_enumeration():
+    """The one-sided signed-rank p-value equals the exact permutation p-value (all 2^K sign flips)."""
+    import itertools
+
+    d = np.array([0.9, -0.15, 0.4, 1.3, 0.05, 0.7, 0.35, -0.6, 1.1, 0.2])
+    ranks = np.argsort(np.argsort(np.abs(d))) + 1
+    obs = ranks[d > 0].sum()
+    null = [sum(r for r, s in zip(ranks, signs) if s) for signs in itertools.product([0, 1], repeat=len(d))]
+    want = np.mean(np.array(null) >= obs)
+    assert ForwardCVSelector.paired_p(d) == pytest.approx(want, rel=1e-9)
+
+
+def test_valid_mask_drops_rest_and_filter_memory():
+    t = np.arange(1000) * 0.01
+    dq = np.ones((1000, 2))
+    dq[400:450, 0] = 0.0  # joint 0 rests for 0.5 s
+    M = valid_mask(dq, np.array([0.05, 0.05]), t, f_c=5.0)
+    # half a cutoff period (0.1 s = 10 samples) either side of the rest is dropped too
+    want = np.ones(1000)
+    want[390:460] = 0.0
+    np.testing.assert_array_equal(M[:, 0], want)
+    assert M[:, 1].all()
+
+
 @pytest.fixture(scope="module")
 def cases():
     out = {}
-    for name in ("panda_coulomb_j4", "panda_control", "actuator_load_friction", "panda_payload"):
+    for name in ("panda_coulomb_j4", "panda_control", "actuator_load_friction", "panda_payload",
+                 "actuator_pushes_coulomb"):
         spec = dict(next(s for s in C.STANDARD_CASES if s["name"] == name), n_samples=2000)
         rec, truth = C.make_case(spec, seed=2)
         out[name] = (spec, rec, truth)
@@ -72,9 +130,8 @@ def test_finds_concealed_coulomb(cases):
 
 def test_finds_load_dependent_friction_on_actuator(cases):
     res, truth = _run(cases["actuator_load_friction"])
-    # known weakness (see the report): on this short 1-DOF log extra effects may be kept too
-    f = [x for x in _effects(res) if x["effect"] == "load_dependent_friction"]
-    assert len(f) == 1
+    f = _effects(res)
+    assert [(x["effect"], x["joint"]) for x in f] == [("load_dependent_friction", "lever_joint")]
     assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.25)
     assert f[0]["params"]["beta"] == pytest.approx(0.2, rel=0.25)
 
@@ -94,3 +151,21 @@ def test_control_case_has_no_finding(cases, tmp_path):
     doc = json.loads((tmp_path / "findings.json").read_text())
     assert doc["findings"] == [] and set(doc["fit"]) >= {"nominal", "with_physics"}
     assert "Nothing is missing" in (tmp_path / "report.md").read_text()
+
+
+def test_pushes_are_separated_before_fitting_friction(cases):
+    """1-DOF lever with Coulomb friction and pushes (20% of the log): the pushes are flagged
+    where the simulator applied them, and friction is fitted on the rest."""
+    spec, rec, truth = cases["actuator_pushes_coulomb"]
+    res, _ = _run(cases["actuator_pushes_coulomb"])
+    f = _effects(res)
+    assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "lever_joint")]
+    assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
+    d = [x for x in res.findings if x["effect"] == "external_disturbance"]
+    assert len(d) == 1
+    lab = rec.labels["disturbed"] == 1
+    flagged = np.zeros(len(rec.t), bool)
+    for a, b in d[0]["params"]["spans_s"]:
+        flagged |= (rec.t >= a) & (rec.t <= b)
+    assert (flagged & lab).sum() > 0.7 * lab.sum()  # most pushed samples found
+    assert (flagged & ~lab).sum() < 0.1 * flagged.sum()  # few false flags

@@ -233,3 +233,19 @@ def test_make_gp_switches_at_threshold_and_sparse_fit_is_accurate():
     ex = ExactGP(max_fit_points=200, max_iter=30).fit(X, Y)
     nmse = lambda gp: (((gp.predict(Xq, return_std=False) - Yq) ** 2).mean(0) / Yq.var(0))  # noqa: E731
     assert np.all(nmse(sp) < 0.01) and np.all(nmse(ex) < 0.01)  # smooth 2-d target, 600 samples
+
+
+def test_subset_method_loo_is_exact_on_subset_and_held_out_elsewhere():
+    X, Y = toy(N=120)
+    hyp = fixed_hyper(2, 2)
+    sp = SparseGP(method="subset", n_subset=50).fit(X, Y, hyper=hyp, optimise=False)
+    lm, ls = sp.loo_predictive()
+    rest = np.setdiff1d(np.arange(len(X)), sp.subset_)
+    # reference: an exact GP on the subset, with the scalers of the full data
+    ex = ExactGP().fit(X[sp.subset_], Y[sp.subset_], hyper=hyp, optimise=False)
+    m_ref, s_ref = ex.predict(X[rest], include_noise=True)
+    np.testing.assert_allclose(lm[rest], m_ref, rtol=1e-12)
+    np.testing.assert_allclose(ls[rest], s_ref, rtol=1e-12)
+    np.testing.assert_allclose(lm[sp.subset_], ex.loo_predictive()[0], rtol=1e-12)
+    ref = -0.5 * (np.log(2 * np.pi * ls ** 2) + ((Y - lm) / ls) ** 2).sum()
+    assert sp.loo_log_predictive() == pytest.approx(ref, rel=1e-12)
