@@ -42,6 +42,12 @@ def score_case(findings: list, truth: list):
     true = {pair(t): t for t in truth}
     tp = [p for p in found if p in true]
     rel = []
+    if ("mode_switch", None) in tp:
+        # per-mode payload masses against the simulated ones (non-zero masses only)
+        est = sorted(m["mass"] for m in found[("mode_switch", None)]["params"].get("per_mode", []))
+        tru = sorted(true[("mode_switch", None)]["params"]["masses"])
+        if len(est) == len(tru):
+            rel += [abs(a - b) / abs(b) for a, b in zip(est, tru) if b != 0]
     for p in tp:
         for k, v in true[p]["params"].items():
             if k in MAGNITUDES and isinstance(v, (int, float)) and v != 0:

@@ -277,21 +277,24 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
             out: Path = typer.Option(..., "--out"),
             robot: Optional[str] = typer.Option(None, "--robot"),
             urdf: Optional[Path] = typer.Option(None, "--urdf"),
+            max_train: int = typer.Option(1000, "--max-train", help="Training samples per fold."),
             force: bool = typer.Option(False, "--force")):
     """Held-out (time-block) normalised MSE per joint: rigid body only, GP only, rigid body + GP."""
-    from .compare import compare as run_compare, write_compare
+    from .compare import compare as run_compare, format_compare, write_compare
     from .io import atomic_output_dir, read_log
     from .signals import complete_derivatives
 
     try:
         robot_model = _robot_for(log, robot, urdf)
-        lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints if robot_model else None))
+        lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints if robot_model else None,
+                                           joint_names=robot_model.joint_names if robot_model else None))
         with atomic_output_dir(out, force=force) as tmp:
-            res = run_compare(lg, robot_model)
+            res = run_compare(lg, robot_model, max_train=max_train,
+                              progress=lambda msg: typer.echo(msg, err=True))
             write_compare(res, tmp)
     except InputError as exc:
         _fail(exc)
-    typer.echo(json.dumps(res, indent=2, default=str)[:4000])
+    typer.echo(format_compare(res))
 
 
 @app.command()

@@ -3,16 +3,25 @@
 Pipeline (``diagnose``):
 
 1. *Locate*: residual ``r = tau - tau_rbd(q, dq, ddq)`` per joint; where it concentrates (near
-   zero velocity, high load, position/acceleration ranges, time spans).
-2. *Separate*: intermittent external pushes are flagged (multimodal learner ``mmgp.em`` when
-   asked for, else a robust chi-square scan of the whitened residual) and left out of effect fitting.
-3. *Name*: every candidate effect of ``mmgp.effects`` is a few regressor columns. Effects are
-   chosen by forward selection on time-block cross-validation with the one-standard-error rule
-   (on paired fold differences): a model is kept only if no smaller model on the path is within
-   one standard error of the best held-out error. Effects whose physical sign is violated
-   (negative friction, mass, inertia, stiffness) are not admissible. No magnitude threshold.
+   zero velocity, high load, position/acceleration ranges, time spans). Residual and every
+   regressor column are low-passed alike (parallel filtering). A joint's equation is left out
+   where its velocity is within noise of zero (``valid_mask``): stuck, static friction is
+   set-valued, and fitting it would feed look-alike effects.
+2. *Separate* (physics first): a robust (Huber then Tukey IRLS) fit of the whole library gives
+   sample weights with pushes at zero; effects are selected on those weights; then the residual of
+   the *selected* model is scanned for pushes (chi-square scan at a family-wise level over the
+   log's independent samples; excursions shorter than the filter's resolution are not events).
+   ``separate="em"`` uses ``mmgp.em.MultimodalSEM`` instead.
+3. *Name*: every candidate effect of ``mmgp.effects`` is a few regressor columns. Forward selection
+   on time-block cross-validation (20 blocks): an effect is added only while the best candidate's
+   paired held-out gain is significant (one-sided signed-rank test over the blocks) at family-wise
+   level ``alpha`` (Bonferroni over the candidates tried at that step); physical signs must hold;
+   nested effects (load dependence in Coulomb friction) are only tried as extensions. No
+   magnitude threshold.
 4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
    GP (``mmgp.gp.ExactGP``) on what is left; held-out normalised MSE per joint at three stages.
+   Mode switches: one vs two payload modes per link (sticky two-state switching regression, HMM
+   predictive from samples a filter memory earlier, on held-out blocks), same test.
 5. *Tell*: findings per CONTRACT section 2/3, a Markdown report and residual plots.
 
 Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
@@ -30,7 +39,6 @@ import numpy as np
 from . import effects as fx
 from .io import RobotLog
 
-_DEBUG = False
 STAGES = ("nominal", "with_physics", "with_physics_and_gp")
 
 _UNITS = {"tau_c": "N*m", "b": "N*m*s/rad", "beta": "", "inertia": "kg*m^2", "k": "N*m/rad",
@@ -61,6 +69,8 @@ class DiagnoseConfig:
     plots: write PNGs with ``write``.
     modes: test for a payload that switches between two values (mode_switch); mode_folds,
         mode_max_samples: time blocks and (thinned) samples of that test.
+    load_with_friction: (when not load_from_log) the load is the nominal torque plus the robust
+        fit's friction estimate, as the motor torque that the gears carry includes friction.
     state_check: also drop flagged spans whose residual the joints' own state explains (kNN);
         off by default: physics-first scanning and the rest mask already remove such misfit, and
         on 1-DOF logs with long pushes the neighbours themselves are pushed samples.
@@ -91,10 +101,11 @@ class DiagnoseConfig:
     rest_factor: float = 1.0
     push_alpha: float = 0.001
     load_from_log: bool = False
+    load_with_friction: bool = False
     state_check: bool = False
     modes: bool = True
     mode_folds: int = 10
-    mode_max_samples: int = 1500
+    mode_max_samples: int = 1000
     max_steps: int | None = None
     filter: bool = True
     seed: int = 0
@@ -326,13 +337,17 @@ class ForwardCVSelector:
             if self.rule == "bonferroni":
                 crit = self.alpha / len(cand)
                 ok = [c for c in cand if c[3] < crit]
-                if _DEBUG:
-                    for c in sorted(cand, key=lambda c: c[0])[:6]:
-                        d = cur - c[2]
-                        print(f"  step {len(chosen)} crit {crit:.2g} {c[1]!r:28} gain {d.mean():.4g} p {c[3]:.2g} neg folds {(d < 0).sum()}")
                 if not ok:
                     break
                 m, e, ef, tt = min(ok, key=lambda c: c[0])
+                if e.supersedes:
+                    # nested look-alikes (a spring contains an offset): keep the smaller effect
+                    # when it qualifies on its own and the larger is not significantly better
+                    for c in ok:
+                        if c[1].index == e.index and c[1].name in e.supersedes and \
+                                self.paired_p(c[2] - ef) >= crit:
+                            m, e, ef, tt = c
+                            break
                 if isinstance(e, fx.Payload):
                     # a mass on joint i+1's axis loads the joints exactly as the same mass on
                     # link i does: among payloads the data cannot tell apart (held-out error
@@ -514,12 +529,15 @@ def _fit_switching(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, n
     return th, stay, post
 
 
-def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, folds) -> dict:
+def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, folds, lag: int = 1) -> dict:
     """Held-out comparison of one versus two modes for the effect with columns ``C``.
 
     For each time-block fold both models are fitted on the training part; on the test block the
     two-mode model predicts each sample with its state probabilities given the test block's
-    *earlier* samples only (HMM one-step predictive), so the comparison stays out of sample.
+    samples at least ``lag`` steps earlier (HMM ``lag``-step predictive), so the comparison stays
+    out of sample. ``lag`` should span the residual's correlation time (the low-pass filter's
+    memory): with a one-step predictive any latent-state model wins on a smooth residual just
+    by tracking its autocorrelation.
     Returns {"d": (K,) held-out weighted SSE one-mode minus two-mode, "p": one-sided signed-rank
     p-value, and the all-data fit: "theta" (2, p), "post" (T, 2), "stay"}.
     """
@@ -532,7 +550,11 @@ def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray,
         err1 = (Wv[te] * (e[te] - C[te] @ th1) ** 2).sum()
         th2, stay, _ = _fit_switching(C[tr], e[tr], w, V[tr], n_iter=15)
         ll = np.stack([-0.5 * (Wv[te] * (e[te] - C[te] @ th2[k]) ** 2).sum(1) for k in range(2)], 1)
-        _, pred = _hmm_filter(ll, stay, smooth=False)
+        alpha, _ = _hmm_filter(ll, stay, smooth=False)
+        Pl = np.linalg.matrix_power(np.array([[stay, 1 - stay], [1 - stay, stay]]), max(lag, 1))
+        pred = np.full((len(te), 2), 0.5)
+        if len(te) > lag:
+            pred[lag:] = alpha[:-lag] @ Pl
         mu = pred[:, 0, None] * (C[te] @ th2[0]) + pred[:, 1, None] * (C[te] @ th2[1])
         err2 = (Wv[te] * (e[te] - mu) ** 2).sum()
         d.append(err1 - err2)
@@ -652,6 +674,8 @@ class DiagnosisResult:
     joint_names: list
     info: dict = field(default_factory=dict)
     _plot_data: dict | None = field(default=None, repr=False)
+    #: per analysed sample: {"t", "mode" (int), "disturbed" (0/1)} when modes or pushes were found
+    labels: dict | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         return {"findings": self.findings, "fit": self.fit, "location": self.location, "info": self.info}
@@ -664,7 +688,7 @@ class DiagnosisResult:
         effects = [f for f in self.findings if f["effect"] not in ("external_disturbance", "mode_switch")]
         if not effects:
             lines.append("Nothing is missing: no candidate effect improves the held-out (time-block "
-                         "cross-validated) error by more than one standard error over the nominal model.")
+                         "cross-validated) error significantly over the nominal model.")
         else:
             lines.append("## Findings")
             lines.append("")
@@ -686,7 +710,8 @@ class DiagnosisResult:
                          f"of the torque RMS); largest in {loc['where']} ({loc['ratio']:.2f}x the overall RMS)")
         lines += ["", "## Method", "",
                   f"Candidates: {self.info.get('n_candidates')} effects. Forward selection on {self.info.get('n_folds')} "
-                  "time blocks, one-standard-error rule on paired fold differences; parameters by "
+                  "time blocks: an effect is added while its paired held-out gain is significant (signed-rank "
+                  "test, Bonferroni over the candidates of each step); parameters by "
                   "non-negative least squares on all undisturbed samples, standard deviations by block "
                   "jackknife over the folds. Coulomb friction uses tanh(dq/v_s), v_s = "
                   f"{self.info.get('sign_noise_factor')} x velocity noise: "
@@ -696,12 +721,19 @@ class DiagnosisResult:
         return "\n".join(lines) + "\n"
 
     def write(self, out_dir) -> Path:
-        """Write ``findings.json``, ``report.md`` and residual plots into ``out_dir``."""
+        """Write ``findings.json``, ``report.md``, residual plots and (when modes or pushes were
+        found) ``labels.parquet`` (t, mode, disturbed per analysed sample) into ``out_dir``."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         if self._plot_data is not None:
             self.info["plots"] = _plot(self._plot_data, out)
         (out / "findings.json").write_text(self.to_json())
+        if self.labels is not None:
+            import pandas as pd
+
+            from .io import write_table
+
+            write_table(out / "labels.parquet", pd.DataFrame(self.labels))
         (out / "report.md").write_text(self.report_markdown())
         return out
 
@@ -940,8 +972,6 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         # (pushes carry small weights there), then scan the residual of the *selected* model.
         # Scanning the full library's residual instead would see an over-fitted, too-quiet
         # residual wherever the log has few independent samples (slow trajectories).
-        if _DEBUG:
-            print("full fit", dict(zip(keys, np.round(th, 3))), "h mean", huber["h"].mean(0))
         folds0 = _folds(T, cfg.n_folds, t, f_c)
         w0 = _joint_weights(r - A @ th, M)
         g0 = FoldGrams(A, r, np.ones(T, bool), folds0, W=M * huber["h"])
@@ -968,6 +998,21 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         # by exactly the effects being looked for; low-passed, the logged torque is nearly
         # noise-free. Only now: before the pushes are known, the logged torque carries them too.
         ctx.tau_load = lp(tau)
+        keys, A = atoms()
+        th = full_fit(use)
+    elif cfg.load_with_friction:
+        # the motor torque the gears carry includes the friction itself; add the robust fit's
+        # (non-negative) Coulomb and viscous estimate to the nominal torque. A state function,
+        # unlike the logged torque, so no endogeneity; where friction dominates, |load| * sign
+        # is collinear with the Coulomb column and load dependence brings no held-out gain.
+        kk = {a: i for i, a in enumerate(keys)}
+        fr = np.zeros_like(tau)
+        for j in range(n):
+            if ("sign", j) in kk:
+                fr[:, j] += max(th[kk[("sign", j)]], 0.0) * np.tanh(dq[:, j] / vs[j])
+            if ("dq", j) in kk:
+                fr[:, j] += max(th[kk[("dq", j)]], 0.0) * dq[:, j]
+        ctx.tau_load = ctx.tau_rbd + fr
         keys, A = atoms()
         th = full_fit(use)
     timings["separate_s"] = time.perf_counter() - t0 - timings["context_s"]
@@ -1040,7 +1085,8 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         ev = {"cv_error_reduction": float(per_joint[jmain]),
               "cv_error_reduction_joint": names[jmain],
               "cv_error_reduction_per_joint": {names[j]: float(per_joint[j]) for j in aff},
-              "cv_improvement_in_se": z, "selection_step": chosen.index(e) + 1, "params_std": s,
+              "cv_improvement_in_se": z, "p_value_without_it": ForwardCVSelector.paired_p(d),
+              "selection_step": chosen.index(e) + 1, "params_std": s,
               "criterion": (f"{K}-fold time-block CV, paired t-test at family-wise level {cfg.alpha:g}"
                             if cfg.rule == "bonferroni" else f"{K}-fold time-block CV, {cfg.se_rule:g}-SE rule")}
         f = {"effect": e.name, **e.where(ctx), "params": p, "evidence": ev}
@@ -1098,11 +1144,23 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         step = max(step, int(np.ceil(T / cfg.mode_max_samples)))
         idx = np.arange(0, T, step)
         folds_m = _folds(len(idx), cfg.mode_folds, t[idx], f_c)
-        tests = []
+        # predict a held-out sample from samples a filter memory (one cutoff period) earlier
+        lag = int(np.ceil((1.0 / f_c) / (step * float(np.median(np.diff(t)))))) if f_c else 1
+        # screen: two-mode fit of every link on all (thinned) samples; the held-out test then runs
+        # for the two links with the largest in-sample gain (Bonferroni still counts every link)
+        screen = []
+        Wv = M[idx] * w[None, :]
         for e in payloads:
             cols = [kidx[("pl", e.index, i)] for i in range(4)]
-            res_m = mode_switch_test(A[idx][:, :, cols], e_all[idx], w, M[idx], folds_m)
-            tests.append((e, res_m))
+            Cm, em = A[idx][:, :, cols], e_all[idx]
+            th1 = FoldGrams._solve(np.einsum("tj,tjp,tjq->pq", Wv, Cm, Cm), np.einsum("tj,tjp,tj->p", Wv, Cm, em))
+            th2, _, post = _fit_switching(Cm, em, w, M[idx], n_iter=10)
+            mu = post[:, 0, None] * (Cm @ th2[0]) + post[:, 1, None] * (Cm @ th2[1])
+            screen.append(((Wv * (em - Cm @ th1) ** 2).sum() - (Wv * (em - mu) ** 2).sum(), e, cols))
+        tests = []
+        for _, e, cols in sorted(screen, key=lambda x: -x[0])[:2]:
+            tests.append((e, mode_switch_test(A[idx][:, :, cols], e_all[idx], w, M[idx], folds_m, lag=lag)))
+        n_tested = len(payloads)
         def base_of(e):
             if e in chosen:
                 return np.array([thS[S.index(kidx[("pl", e.index, i)])] for i in range(4)])
@@ -1116,7 +1174,7 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
                     return False
             return True
 
-        best = [(e, rm) for e, rm in tests if rm["p"] < cfg.alpha / len(tests) and admissible(e, rm)]
+        best = [(e, rm) for e, rm in tests if rm["p"] < cfg.alpha / n_tested and admissible(e, rm)]
         if best:
             e, rm = max(best, key=lambda x: x[1]["d"].mean())
             se = np.std(rm["d"], ddof=1) / np.sqrt(len(rm["d"]))
@@ -1143,12 +1201,11 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
             mode_info = {"effect": e, "labels": lab, "test": rm}
             findings.append({
                 "effect": "mode_switch", "joint": None,
-                "params": {"n_modes": 2, "per_mode": per_mode, "switch_times_s": sw_t[:100],
-                           "labels_per_sample": None},
+                "params": {"n_modes": 2, "per_mode": per_mode, "switch_times_s": sw_t[:100]},
                 "evidence": {"held_out_gain_per_fold": rm["d"].tolist(), "p_value": rm["p"],
                              "criterion": f"{cfg.mode_folds}-fold time-block CV of one vs two payload modes "
-                                          "(HMM one-step predictive on held-out blocks), signed-rank test, "
-                                          f"family-wise level {cfg.alpha:g} over {len(tests)} links"},
+                                          "(HMM predictive from a filter memory earlier, held-out blocks), signed-rank test, "
+                                          f"family-wise level {cfg.alpha:g} over {n_tested} links"},
                 "explanation": (f"the dynamics switch between two modes ({len(sw_t)} switch(es)): a payload on "
                                 f"{per_mode[0]['link']} of {per_mode[0]['mass']:.3g} kg "
                                 f"({100 * per_mode[0]['fraction']:.0f}% of the time) and {per_mode[1]['mass']:.3g} kg "
@@ -1196,7 +1253,12 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
     if cfg.plots:
         plot = {"q": q[use], "dq": dq[use], "tau": tau[use], "r_before": r[use], "r_after": r_after[use],
                 "joint_names": names}
-    res = DiagnosisResult(findings=findings, fit=fit, location=loc, joint_names=names, info=info, _plot_data=plot)
+    labels = None
+    if disturbed.any() or mode_info is not None:
+        labels = {"t": t.copy(), "mode": (mode_info["labels"] if mode_info is not None else np.zeros(T, int)).astype(int),
+                  "disturbed": disturbed.astype(int)}
+    res = DiagnosisResult(findings=findings, fit=fit, location=loc, joint_names=names, info=info, _plot_data=plot,
+                          labels=labels)
     if out_dir is not None:
         res.write(out_dir)
     return res

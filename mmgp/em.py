@@ -570,8 +570,8 @@ class MultimodalSEM:
             sweep += 1
 
         post = post_sum / max(n_avg, 1)
-        p_mode = post[:, :K] + (post[:, K:] if self.disturbance else 0.0)
-        p_dist = post[:, K:].sum(1) if self.disturbance else np.zeros(T)
+        p_mode = np.clip(post[:, :K] + (post[:, K:] if self.disturbance else 0.0), 0.0, 1.0)
+        p_dist = np.clip(post[:, K:].sum(1), 0.0, 1.0) if self.disturbance else np.zeros(T)
         # Mode 0 is the nominal mode: the one holding the most undisturbed probability mass.
         order = np.argsort(-(p_mode * (1 - p_dist)[:, None]).sum(0), kind="stable")
         self.p_mode_ = p_mode[:, order]

@@ -84,8 +84,10 @@ def downsample(log: RobotLog, rate_hz: float) -> RobotLog:
         raise InputError(f"target rate must be positive, got {rate_hz}")
     t = log.t
     ticks = np.arange(t[0], t[-1] + 1e-12, 1.0 / rate_hz)
-    idx = np.unique(np.clip(np.searchsorted(t, ticks), 0, len(t) - 1))
-    return log.subset(idx)
+    right = np.clip(np.searchsorted(t, ticks), 0, len(t) - 1)
+    left = np.clip(right - 1, 0, len(t) - 1)
+    nearest = np.where(np.abs(t[left] - ticks) <= np.abs(t[right] - ticks), left, right)
+    return log.subset(np.unique(nearest))
 
 
 def time_block_folds(T: int, n_folds: int = 5, gap: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
