@@ -336,7 +336,7 @@ class MultimodalSEM:
                  stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
                  tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
                  max_support: int = 1000, fit_points: int = 600, fit_iter: int = 50,
-                 exclusion_s: float = 1.0, block_s: float = 2.0, gp_kwargs: dict | None = None, seed: int = 0,
+                 exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
             raise ValueError("n_modes must be >= 1")
@@ -356,6 +356,7 @@ class MultimodalSEM:
         self.fit_iter = fit_iter
         self.exclusion_s = exclusion_s
         self.block_s = block_s
+        self.mode_smoothing_s = mode_smoothing_s
         self.gp_kwargs = gp_kwargs or {}
         self.seed = seed
         self.progress = progress
@@ -413,12 +414,19 @@ class MultimodalSEM:
             z = np.abs(r - np.median(r, 0)) / mad
             states[(z > 4.0).any(1)] = K  # k=0, d=1
         if K > 1:
-            from scipy.ndimage import uniform_filter1d
+            from scipy.ndimage import median_filter
             from sklearn.cluster import KMeans
 
+            # Modes persist far longer than pushes: a running median over a few seconds keeps a
+            # mode's offset and suppresses pushes, which would otherwise dominate the clustering.
             raw = Y - mean
-            w = max(3, T // 50)
-            smooth = uniform_filter1d(raw, size=w, axis=0, mode="nearest")
+            if self._t_axis is not None:
+                dt = float(np.median(np.diff(self._t_axis)))
+                w = int(round(self.mode_smoothing_s / max(dt, 1e-9)))
+            else:
+                w = T // 25
+            w = int(min(max(w, 3), max(3, T // 4)))
+            smooth = median_filter(raw, size=(w, 1), mode="nearest")
             smooth = smooth / (smooth.std(0) + 1e-12)
             km = KMeans(n_clusters=K, n_init=10, random_state=self.seed).fit(smooth)
             states = km.labels_ + K * (states >= K)
