@@ -33,6 +33,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--samples", type=int, default=5000)
     ap.add_argument("--estep", default="ffbs")
+    ap.add_argument("--config", default=None)
     ap.add_argument("--no-baselines", action="store_true")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -41,7 +42,7 @@ def main() -> int:
         log, lab = Path(tmp) / "panda.parquet", Path(tmp) / "panda_labels.parquet"
         rec.write(log, lab)
         print(f"generated {args.samples} samples in {time.perf_counter() - t0:.1f} s", flush=True)
-        cfg = load_config(modes=2, estep=args.estep)
+        cfg = load_config(args.config, modes=2, estep=args.estep)
         robot = load_robot(log_path=log)
         t0 = time.perf_counter()
         res = train([log], cfg, robot=robot,

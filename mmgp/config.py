@@ -41,8 +41,9 @@ class TrainConfig:
     semiparametric: str = "residual"
     exclusion_s: float = 1.0
     friction_feature: bool = True
-    max_support: int = 1000
-    fit_points: int = 600
+    max_support: int = 500
+    final_support: int = 2000
+    fit_points: int = 500
     fit_iter: int = 50
     max_sweeps: int = 40
     min_sweeps: int = 6
@@ -68,7 +69,7 @@ class TrainConfig:
             bad("stay_prob", "expected a probability strictly between 0 and 1")
         if self.rate_hz is not None and self.rate_hz <= 0:
             bad("rate_hz", "expected a positive rate in Hz")
-        for key in ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last"):
+        for key in ("max_support", "final_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last"):
             if int(getattr(self, key)) < 1:
                 bad(key, "expected a positive integer")
         return self

@@ -326,8 +326,10 @@ class MultimodalSEM:
         the sampled labels change in fewer than ``tol_changed`` of the samples on average and the
         mean log joint stops rising compared with the ``patience`` sweeps before.
     average_last : sweeps after convergence whose posterior marginals are averaged.
-    max_support : at most this many undisturbed samples condition each mode's GP (random subset;
-        the others are predicted out of sample); bounds each sweep at O(max_support^3).
+    max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
+        (random subset; the others are predicted out of sample): each sweep costs
+        O(max_support^2 * T) per joint.
+    final_support : the returned GPs (used by predict/export) condition on up to this many.
     fit_points, fit_iter : hyperparameter fitting subset size and L-BFGS iterations.
     gp_kwargs : passed to ExactGP (e.g. ard, objective, device).
     """
@@ -335,7 +337,8 @@ class MultimodalSEM:
     def __init__(self, n_modes: int = 1, *, disturbance: bool = True, estep: str = "ffbs",
                  stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
                  tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
-                 max_support: int = 1000, fit_points: int = 600, fit_iter: int = 50,
+                 max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
+                 final_support: int = 2000,
                  exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
@@ -352,6 +355,7 @@ class MultimodalSEM:
         self.patience = patience
         self.average_last = average_last
         self.max_support = max_support
+        self.final_support = final_support
         self.fit_points = fit_points
         self.fit_iter = fit_iter
         self.exclusion_s = exclusion_s
@@ -448,7 +452,7 @@ class MultimodalSEM:
         # makes them 10-100x slower whenever another process competes for the cores, and one
         # thread is as fast when it does not. Large supports still get every core.
         prev_threads = torch.get_num_threads()
-        if self.max_support <= 1500:
+        if self.max_support <= 1500 and len(X) <= 2000:
             torch.set_num_threads(1)
         try:
             return self._fit(X, Y, t=t, starts=starts, init_states=init_states)
@@ -487,7 +491,8 @@ class MultimodalSEM:
         p_enter, p_leave = 0.05, 0.2
         sigma_d = Y.var(0) + 1e-12
         init_p = np.full(S, 1.0 / S)
-        refit_at = {0, 1, 2, 4, 8, 16, 32}
+        # Hyperparameter refits dominate a sweep's cost on long logs; short logs refit often.
+        refit_at = {0, 1, 2, 4, 8, 16, 32} if T <= 2000 else {0, 2, 5}
         trace: list[SweepRecord] = []
         post_sum = np.zeros((T, S))
         n_avg = 0
@@ -600,8 +605,8 @@ class MultimodalSEM:
             members = np.flatnonzero((self.labels_ == i) & ~self.disturbed_)
             if len(members) < max(5, n):
                 members = np.flatnonzero(self.labels_ == i)
-            if len(members) > self.max_support:
-                members = np.sort(rng.choice(members, self.max_support, replace=False))
+            if len(members) > self.final_support:
+                members = np.sort(rng.choice(members, self.final_support, replace=False))
             gp = self._new_gp().fit(X[members], Y[members], hyper=hypers[k], optimise=False)
             self.gps_.append(gp)
             self.support_X_.append(X[members])

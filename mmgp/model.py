@@ -221,6 +221,7 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     feats = build_features(logs, semi, robot, fscale)
     kw = dict(disturbance=cfg.disturbance, estep=cfg.estep, stay_prob=cfg.stay_prob, max_sweeps=cfg.max_sweeps,
               min_sweeps=cfg.min_sweeps, average_last=cfg.average_last, max_support=cfg.max_support,
+              final_support=cfg.final_support,
               fit_points=cfg.fit_points, fit_iter=cfg.fit_iter, exclusion_s=cfg.exclusion_s, seed=cfg.seed,
               progress=progress,
               gp_kwargs={"ard": cfg.ard, "objective": cfg.objective, "device": cfg.device})

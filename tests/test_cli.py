@@ -1,0 +1,127 @@
+"""End-to-end checks of the command line on the shipped replica (a few seconds each)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from mmgp.cli import app
+from mmgp.evaluate import classification_figures
+from mmgp.io import read_labels
+
+ROOT = Path(__file__).resolve().parents[1]
+LOG = ROOT / "datasets/replica/replica_log.parquet"
+LABELS = ROOT / "datasets/replica/replica_labels.parquet"
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "run"
+    res = runner.invoke(app, ["train", str(LOG), "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_train_writes_contract_outputs(trained):
+    lab = pd.read_parquet(trained / "labels.parquet")
+    assert list(lab.columns[:4]) == ["t", "mode", "disturbed", "p_disturbed"]
+    assert "p_mode_0" in lab.columns
+    assert len(lab) == len(pd.read_parquet(LOG))
+    assert set(lab["disturbed"].unique()) <= {0, 1}
+    assert ((lab["p_disturbed"] >= 0) & (lab["p_disturbed"] <= 1)).all()
+    # Thresholded posterior and label agree.
+    assert ((lab["p_disturbed"] > 0.5).astype(int) == lab["disturbed"]).all()
+    rep = json.loads((trained / "report.json").read_text())
+    for key in ("hyperparameters", "disturbance", "switching_prior", "likelihood_trace", "timings"):
+        assert key in rep
+    assert rep["n_samples"] == len(lab)
+    assert (trained / "labels.png").stat().st_size > 1000
+    assert (trained / "likelihood_trace.png").stat().st_size > 1000
+
+
+def test_train_far_above_source_on_replica(trained):
+    # The source classified 81.7% of unperturbed samples correctly and missed 15.2% of pushes.
+    pred = pd.read_parquet(trained / "labels.parquet")
+    fig = classification_figures(pred, read_labels(LABELS, t=pred["t"].to_numpy()))
+    assert fig["unperturbed_correct"] > 192 / 235
+    assert fig["perturbed_missed"] < 14 / 92
+
+
+def test_evaluate_writes_figures_matching_library(trained):
+    res = runner.invoke(app, ["evaluate", str(trained), "--truth", str(LABELS)])
+    assert res.exit_code == 0, res.output
+    fig = json.loads((trained / "evaluation.json").read_text())
+    pred = pd.read_parquet(trained / "labels.parquet")
+    truth = read_labels(LABELS, t=pred["t"].to_numpy())
+    d = truth["disturbed"].to_numpy()
+    p = pred["disturbed"].to_numpy()
+    judged = d != -1
+    assert fig["n_judged"] == judged.sum()
+    assert fig["n_ambiguous_left_out"] == (~judged).sum()
+    assert fig["perturbed_missed"] == pytest.approx(((p == 0) & (d == 1)).sum() / (d == 1).sum())
+    assert fig["unperturbed_correct"] == pytest.approx(((p == 0) & (d == 0)).sum() / (d == 0).sum())
+
+
+def test_predict_matches_reloaded_model(trained, tmp_path):
+    out = tmp_path / "pred.parquet"
+    res = runner.invoke(app, ["predict", str(trained), str(LOG), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    df = pd.read_parquet(out)
+    assert list(df.columns) == ["t", "tau_hat_0", "tau_std_0"]
+    tau = pd.read_parquet(LOG)["tau_0"].to_numpy()
+    lab = pd.read_parquet(trained / "labels.parquet")
+    nominal = lab["disturbed"].to_numpy() == 0
+    # On undisturbed samples the nominal mode predicts the logged torque to within a few std.
+    z = np.abs(tau - df["tau_hat_0"].to_numpy()) / df["tau_std_0"].to_numpy()
+    assert np.median(z[nominal]) < 2.0
+    assert (df["tau_std_0"] > 0).all()
+
+
+def test_export_and_check_passivity(trained, tmp_path):
+    f = tmp_path / "comp.json"
+    res = runner.invoke(app, ["export", str(trained), "--out", str(f), "--c", str(tmp_path / "comp")])
+    assert res.exit_code == 0, res.output
+    import mmgp
+
+    comp = mmgp.load_compensator(f)
+    q = np.linspace(-0.5, 1.2, 7)[:, None]
+    h = 1e-6
+    fd = (comp.storage(q + h) - comp.storage(q - h)) / (2 * h)
+    assert np.allclose(fd, comp.torque(q)[:, 0], rtol=1e-5, atol=1e-6)
+    res = runner.invoke(app, ["check-passivity", str(f)])
+    assert res.exit_code == 0 and "passed: True" in res.output
+
+
+def test_bad_input_gives_one_located_error_and_exit_2(tmp_path):
+    df = pd.read_parquet(LOG)
+    df.loc[5, "tau_0"] = np.nan
+    bad = tmp_path / "bad.csv"
+    df.to_csv(bad, index=False)
+    before = bad.read_bytes()
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["train", str(bad), "--out", str(out), "--quiet"])
+    assert res.exit_code == 2
+    assert "tau_0" in res.output and "row 5" in res.output and str(bad) in res.output
+    assert not out.exists()
+    assert bad.read_bytes() == before
+
+
+def test_nonempty_out_refused_without_force(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    res = runner.invoke(app, ["train", str(LOG), "--out", str(out), "--quiet"])
+    assert res.exit_code == 2 and "--force" in res.output
+    assert (out / "keep.txt").read_text() == "precious"
+
+
+def test_bad_config_key_is_refused(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("modez: 2\n")
+    res = runner.invoke(app, ["train", str(LOG), "--out", str(tmp_path / "o"), "--config", str(cfg)])
+    assert res.exit_code == 2 and "modez" in res.output
