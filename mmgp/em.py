@@ -339,7 +339,8 @@ class MultimodalSEM:
                  tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
                  max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
                  final_support: int = 2000,
-                 exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0, gp_kwargs: dict | None = None, seed: int = 0,
+                 exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0,
+                 calibrate: bool = True, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
             raise ValueError("n_modes must be >= 1")
@@ -361,6 +362,7 @@ class MultimodalSEM:
         self.exclusion_s = exclusion_s
         self.block_s = block_s
         self.mode_smoothing_s = mode_smoothing_s
+        self.calibrate = calibrate
         self.gp_kwargs = gp_kwargs or {}
         self.seed = seed
         self.progress = progress
@@ -491,6 +493,7 @@ class MultimodalSEM:
         p_enter, p_leave = 0.05, 0.2
         sigma_d = Y.var(0) + 1e-12
         init_p = np.full(S, 1.0 / S)
+        calib = np.ones((K, n))
         # Hyperparameter refits dominate a sweep's cost on long logs; short logs refit often.
         refit_at = {0, 1, 2, 4, 8, 16, 32} if T <= 2000 else {0, 2, 5}
         trace: list[SweepRecord] = []
@@ -517,6 +520,7 @@ class MultimodalSEM:
                 mean, var, gp, _ = self._mode_likelihoods(X, Y, members, hypers[k], optimise, rng)
                 hypers[k] = gp.hyper_
                 self.gps_[k] = gp
+                var = var * calib[k]
                 mus.append(mean)
                 vars_.append(var)
                 loglik[:, k] = (-0.5 * (LOG_2PI + np.log(var) + (Y - mean) ** 2 / var)).sum(1)
@@ -541,6 +545,15 @@ class MultimodalSEM:
             # M-step for the disturbance spread and the chain.
             mode_of = states % K
             dist = states >= K if self.disturbance else np.zeros(T, bool)
+            if self.calibrate:
+                # Out-of-window predictions in states the log visits once are overconfident; a
+                # per-mode, per-joint variance scale fitted on the undisturbed samples (mean
+                # squared z-score, never below 1) keeps them from being taken for pushes.
+                for k in range(K):
+                    sel = (mode_of == k) & ~dist
+                    if sel.sum() >= 10:
+                        z2 = ((Y - mus[k]) ** 2 / (vars_[k] / calib[k]))[sel]
+                        calib[k] = np.clip(z2.mean(0), 1.0, 1e4)
             if self.disturbance:
                 mu_s = np.stack(mus)[mode_of, np.arange(T)]
                 var_s = np.stack(vars_)[mode_of, np.arange(T)]
