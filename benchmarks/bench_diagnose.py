@@ -63,6 +63,8 @@ def run_cases(samples: int, seeds: list[int], names: list[str] | None, gp: bool)
     rels = []
     control_findings = 0
     rows = []
+    push_counts = []
+    dropped_spans = []
     for spec in cases:
         for seed in seeds:
             s = dict(spec, n_samples=samples)
@@ -84,6 +86,19 @@ def run_cases(samples: int, seeds: list[int], names: list[str] | None, gp: bool)
                   f"{(np.median(rel) if rel else float('nan')):.3f}  nMSE nominal {nom:.4g} -> physics {phys:.4g}"
                   f"  sim {t_sim:.1f}s diag {t_diag:.1f}s"
                   + (f"  extra {extra}" if extra else "") + (f"  missed {missed}" if missed else ""), flush=True)
+            sep = res.info.get("separation", {})
+            if "disturbed" in rec.labels and (rec.labels["disturbed"] == 1).any():
+                # sample-level push figures (ambiguous samples left out), ours = the scan's spans
+                # gated by the learner; the learner alone and the scan alone for comparison
+                lab = np.interp(res.labels["t"] if res.labels is not None else rec.t, rec.t, rec.labels["disturbed"]).round()
+                got = (res.labels["disturbed"] == 1) if res.labels is not None else np.zeros(len(lab), bool)
+                ptp = int((got & (lab == 1)).sum())
+                push_counts.append((ptp, int((got & (lab == 0)).sum()), int(((lab == 1) & ~got).sum())))
+                print(f"    pushes: flagged {int(got.sum())}, precision {ptp / max(got.sum(), 1):.3f}, recall "
+                      f"{ptp / max((lab == 1).sum(), 1):.3f}; learner flagged {sep.get('em_flagged_fraction', float('nan')):.3f} "
+                      f"of the log, spans dropped by the learner {sep.get('spans_dropped_by_em', 0)}", flush=True)
+            if sep.get("spans_dropped_by_em"):
+                dropped_spans.append((spec["name"], seed, sep["spans_dropped_by_em"]))
             rows.append({"case": spec["name"], "seed": seed, "tp": tp, "fp": fp, "fn": fn, "rel": rel,
                          "extra": extra, "missed": missed, "findings": res.findings})
     prec = TP / max(TP + FP, 1)
@@ -96,6 +111,11 @@ def run_cases(samples: int, seeds: list[int], names: list[str] | None, gp: bool)
           f"(target <= 15%; {len(rels)} parameters; 90th percentile "
           f"{100 * np.quantile(rels, 0.9) if rels else float('nan'):.1f}%)")
     print(f"findings on control cases: {control_findings}   (target 0)")
+    if push_counts:
+        a, b, c = np.sum(push_counts, 0)
+        print(f"pushed samples (cases with pushes): precision {a / max(a + b, 1):.3f}, recall {a / max(a + c, 1):.3f}")
+    print(f"scanned push spans the learner (MultimodalSEM) did not confirm, dropped: "
+          f"{sum(d for *_, d in dropped_spans)} in {len(dropped_spans)} case runs {dropped_spans}")
     return rows
 
 

@@ -108,7 +108,13 @@ class DiagnoseConfig:
     mode_max_samples: int = 1000
     max_steps: int | None = None
     filter: bool = True
+    em_modes: int = 1
+    em_points: int = 500
     seed: int = 0
+
+    def __post_init__(self):
+        if self.separate not in _SEPARATION_METHOD:
+            raise ValueError(f"separate must be one of {sorted(_SEPARATION_METHOD)}, got {self.separate!r}")
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "DiagnoseConfig":
@@ -649,6 +655,75 @@ def state_explained(e: np.ndarray, mask: np.ndarray, q, dq, ddq, *, k: int = 15)
     return np.array(out)
 
 
+def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, t: np.ndarray, *,
+                n_modes: int = 1, max_points: int = 500, seed: int = 0, **sem_kw) -> dict:
+    """The multimodal learner's separation: ``mmgp.em.MultimodalSEM`` (disturbance mode on) on
+    the nominal residual ``resid = tau - tau_rbd`` (T, n), N*m, with GP inputs
+    ``[q, dq, ddq, tanh(dq / v_s)]`` (v_s as in training, ``mmgp.model.friction_velocity_scale``:
+    without the smooth sign a GP cannot follow the friction jump at velocity reversals and would
+    take it for pushes), on at most ``max_points`` samples evenly spaced in time (``t`` in s is
+    passed, so likelihoods leave a window out and a long push is not explained by itself).
+
+    Returns {"p_disturbed": (T,) posterior push probability interpolated in time to every sample,
+    "mode": (T,) int mode labels (nearest subsample), "sigma_d": (n,), "n_points", "seconds",
+    "n_sweeps"}. ``sem_kw`` overrides MultimodalSEM settings.
+    """
+    from .em import MultimodalSEM
+    from .model import friction_velocity_scale
+
+    T, n = resid.shape
+    idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
+    vs = friction_velocity_scale(dq)
+    X = np.concatenate([q, dq, ddq, np.tanh(dq / vs)], axis=1)[idx]
+    # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
+    # sweeps (about 10 s on a 7-DOF log on one core)
+    kw = dict(max_support=min(250, len(idx)), fit_points=min(200, len(idx)), fit_iter=15, max_sweeps=8,
+              min_sweeps=4, average_last=3, final_support=min(250, len(idx)))
+    kw.update(sem_kw)
+    t0 = time.perf_counter()
+    sem = MultimodalSEM(n_modes=n_modes, disturbance=True, seed=seed, **kw).fit(X, resid[idx], t=t[idx])
+    p = np.interp(t, t[idx], sem.p_disturbed_)
+    near = np.clip(np.searchsorted(t[idx], t), 0, len(idx) - 1)
+    return {"p_disturbed": p, "mode": sem.labels_[near].astype(int), "sigma_d": np.asarray(sem.sigma_d_),
+            "n_points": int(len(idx)), "seconds": time.perf_counter() - t0, "n_sweeps": int(sem.n_sweeps_)}
+
+
+_SEPARATION_METHOD = {
+    "auto": "robust chi-square scan, each span confirmed by MultimodalSEM (p_disturbed > 0.5 in it)",
+    "scan+em": "robust chi-square scan, each span confirmed by MultimodalSEM (p_disturbed > 0.5 in it)",
+    "scan|em": "robust chi-square scan or MultimodalSEM (union)",
+    "scan": "robust chi-square scan",
+    "em": "MultimodalSEM (p_disturbed > 0.5)",
+    "none": "none",
+}
+
+
+def _combine(scan: np.ndarray, p_disturbed: np.ndarray, how: str) -> tuple[np.ndarray, dict]:
+    """Join the scan's flags ``scan`` (T,) bool with the learner's ``p_disturbed`` (T,).
+
+    "gate": a scanned span stays only if the learner, which explains the state-dependent part of
+    the residual by a GP (friction, missing inertia) rather than by the effect library, also
+    calls some of it disturbed; "union": either flags a sample.
+    """
+    em = np.asarray(p_disturbed) > 0.5
+    if how == "union":
+        out = scan | em
+        return out, {"spans_added_by_em": len(_runs(out)) - len(_runs(scan))}
+    out = scan.copy()
+    dropped = 0
+    for a, b in _runs(scan):
+        if not em[a:b].any():
+            out[a:b] = False
+            dropped += 1
+    return out, {"spans_dropped_by_em": dropped}
+
+
+def _em_summary(em_info: dict) -> dict:
+    return {"em_points": em_info["n_points"], "em_seconds": float(em_info["seconds"]),
+            "em_sweeps": em_info["n_sweeps"], "em_flagged_fraction": float((em_info["p_disturbed"] > 0.5).mean()),
+            "em_sigma_d": [float(x) for x in em_info["sigma_d"]]}
+
+
 # --------------------------------------------------------------------------------------------
 # The result
 # --------------------------------------------------------------------------------------------
@@ -955,18 +1030,28 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
             th = full_fit(use)
 
     # separate pushes
-    sep_info: dict = {"method": "labels" if labels_disturbed is not None else cfg.separate}
+    sep_info: dict = {"method": "labels" if labels_disturbed is not None else _SEPARATION_METHOD.get(cfg.separate, cfg.separate)}
+    em_info = None
+    em_cache: dict = {}
+
+    def get_em() -> dict:
+        if "res" not in em_cache:
+            em_cache["res"] = em_separate(r_raw, q, dq, ddq, t, n_modes=cfg.em_modes, max_points=cfg.em_points,
+                                          seed=cfg.seed)
+            sep_info.update(_em_summary(em_cache["res"]))
+        return em_cache["res"]
+
     if labels_disturbed is not None:
         disturbed = np.asarray(labels_disturbed) == 1
     elif cfg.separate == "none":
         disturbed = np.zeros(T, bool)
     elif cfg.separate == "em":
-        from .em import MultimodalSEM
-        from .signals import features
-
-        e = r_raw - fx.build_atoms(library, ctx)[1] @ th
-        sem = MultimodalSEM(n_modes=1, disturbance=True, seed=cfg.seed).fit(features(log), e)
-        disturbed = np.asarray(sem.disturbed_, bool)
+        # the learner alone: its flags, at its own (thinned) resolution
+        em_info = get_em()
+        disturbed = em_info["p_disturbed"] > 0.5
+        sep_info["spans"] = [(float(t[a]), float(t[b - 1])) for a, b in _runs(disturbed)]
+        if disturbed.any():
+            th = full_fit(~disturbed)
     else:
         # physics first, pushes from what it leaves: select effects on the Huber-weighted data
         # (pushes carry small weights there), then scan the residual of the *selected* model.
@@ -981,6 +1066,12 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         e0 = r - (A[:, :, S0] @ g0.fit(S0, w0) if S0 else 0.0)
         disturbed, sep_info_scan = scan_disturbances(e0, t, f_c=f_c, valid=M > 0, alpha=cfg.push_alpha)
         sep_info.update(sep_info_scan)
+        if cfg.separate == "scan|em" or (cfg.separate in ("auto", "scan+em") and disturbed.any()):
+            # as a gate the learner can only drop spans: with none scanned it is not needed
+            em_info = get_em()
+            disturbed, comb = _combine(disturbed, em_info["p_disturbed"], "union" if cfg.separate == "scan|em" else "gate")
+            sep_info.update(comb)
+            sep_info["spans"] = [(float(t[a]), float(t[b - 1])) for a, b in _runs(disturbed)]
         if disturbed.any() and cfg.state_check:
             # keep only spans the state does not explain better than not (pushes, not misfit)
             frac = state_explained(e0, disturbed, q, dq, ddq)
@@ -1213,7 +1304,7 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
                                 f"{int((rm['d'] > 0).sum())} of {len(rm['d'])} time blocks.")})
             # the single payload on that link is the modes' average: the mode finding replaces it
             findings[:] = [f for f in findings if not (f["effect"] == "payload" and f.get("link") == ctx.link_names[e.index])]
-            if labels_disturbed is None and cfg.separate == "auto":
+            if labels_disturbed is None and cfg.separate in ("auto", "scan", "scan+em", "scan|em"):
                 # pushes are looked for again once the modes explain their part of the residual
                 mu = np.zeros_like(r)
                 cols = [kidx[("pl", e.index, i)] for i in range(4)]
@@ -1228,6 +1319,14 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
                 disturbed, sep2 = scan_disturbances(e_all - mu, t, f_c=f_c, valid=(M > 0) & ~near[:, None],
                                                     alpha=cfg.push_alpha)
                 sep_info.update(sep2)
+                if cfg.separate == "scan|em" or (cfg.separate in ("auto", "scan+em") and disturbed.any()):
+                    em_info = get_em()
+                    # with n_modes=1 the learner may flag the rarer mode too: as a gate it can
+                    # only drop spans, so that costs nothing here
+                    disturbed, comb = _combine(disturbed, em_info["p_disturbed"],
+                                               "union" if cfg.separate == "scan|em" else "gate")
+                    sep_info.update(comb)
+                    sep_info["spans"] = [(float(t[a]), float(t[b - 1])) for a, b in _runs(disturbed)]
         timings["modes_s"] = time.perf_counter() - tm0
 
     if disturbed.any():
@@ -1235,7 +1334,10 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         findings.append({"effect": "external_disturbance", "joint": None,
                          "params": {"n_samples": int(disturbed.sum()), "fraction": float(disturbed.mean()),
                                     "spans_s": spans[:50]},
-                         "evidence": {"method": sep_info.get("method"), "threshold": sep_info.get("threshold")},
+                         "evidence": {"method": sep_info.get("method"), "threshold": sep_info.get("threshold"),
+                                      **({"em_p_disturbed_max_per_span": [float(em_cache["res"]["p_disturbed"][a:b].max())
+                                                                          for a, b in _runs(disturbed)][:50]}
+                                         if "res" in em_cache else {})},
                          "explanation": f"{len(spans)} span(s) of unmodelled external force ({int(disturbed.sum())} "
                                         f"samples, {100 * disturbed.mean():.1f}% of the log) were found and left out "
                                         "of the effect fitting."})

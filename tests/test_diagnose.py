@@ -190,6 +190,8 @@ def test_pushes_are_separated_before_fitting_friction(cases):
         flagged |= (rec.t >= a) & (rec.t <= b)
     assert (flagged & lab).sum() > 0.7 * lab.sum()  # most pushed samples found
     assert (flagged & ~lab).sum() < 0.1 * flagged.sum()  # few false flags
+    # the default: scanned spans are kept only where the multimodal learner confirms them
+    assert "MultimodalSEM" in res.info["separation"]["method"] and "em_seconds" in res.info["separation"]
 
 
 def test_payload_modes_are_found_with_their_masses(cases):
@@ -204,3 +206,40 @@ def test_payload_modes_are_found_with_their_masses(cases):
     # labels: the two-mode segmentation matches the simulator's modes on most samples
     lab = np.interp(res.labels["t"], rec.t, rec.labels["mode"]).round()
     assert (res.labels["mode"] == lab).mean() > 0.9
+
+
+def test_gate_and_union_of_scan_and_learner_flags():
+    """_combine against its definition, span by span: a scanned span survives the gate iff the
+    learner flags at least one of its samples; the union flags a sample iff either does."""
+    from mmgp.diagnose import _combine, _runs
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        scan = rng.uniform(size=200) < 0.1
+        scan = np.convolve(scan, np.ones(7), "same") > 0  # spans of several samples
+        p = rng.uniform(size=200) ** 6
+        gated, info = _combine(scan, p, "gate")
+        want = np.zeros(200, bool)
+        kept = 0
+        for a, b in _runs(scan):
+            if any(p[i] > 0.5 for i in range(a, b)):
+                want[a:b] = True
+                kept += 1
+        assert (gated == want).all() and info["spans_dropped_by_em"] == len(_runs(scan)) - kept
+        union, _ = _combine(scan, p, "union")
+        assert (union == np.array([s or x > 0.5 for s, x in zip(scan, p)])).all()
+
+
+def test_learner_alone_separates_pushes(cases):
+    """separate="em": MultimodalSEM's flags alone (GP on [q, dq, ddq, tanh(dq/v_s)]) find the
+    simulator's pushes, and friction fitted on the rest is right."""
+    spec, rec, truth = cases["actuator_pushes_coulomb"]
+    res, _ = _run(cases["actuator_pushes_coulomb"], separate="em")
+    f = _effects(res)
+    assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "lever_joint")]
+    assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
+    lab = np.interp(res.labels["t"], rec.t, rec.labels["disturbed"]).round()
+    got = res.labels["disturbed"] == 1
+    assert (got & (lab == 1)).sum() > 0.9 * (lab == 1).sum()
+    assert (got & (lab == 0)).sum() < 0.2 * got.sum()
+    assert res.info["separation"]["em_points"] <= 500
