@@ -62,7 +62,7 @@ from mmgp.sim import simulate as record
 
 HOME = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
 G = 9.81
-VARIANTS = ("none", "rigid-body", "learned", "stand-in")
+ENVELOPE_S = 5.0  # s, Panda training reference: back at rest at the home pose this often
 
 
 def _mj():
@@ -105,7 +105,8 @@ def panda_recording(urdf, payload, lo, hi, n_samples, seed):
     """Training log of the Panda plant (payload, damping 0.3) around the home pose: (T, 7) at 100 Hz.
 
     Reference per joint: 3 sinusoids of 0.05-0.4 Hz centred in ``[lo, hi]`` filling 90% of the half
-    range, peak speed <= 0.8 rad/s; computed torque on the payload-free model (the nominal model
+    range, times an envelope ``sin^2(pi t / ENVELOPE_S)`` so that the arm comes back to rest at the
+    centre (the pose the impedance will hold) every ``ENVELOPE_S`` s, peak speed <= 0.8 rad/s; computed torque on the payload-free model (the nominal model
     a user would have), gains, noise and encoder of :data:`mmgp.sim.PANDA`. Pushes as in
     ``panda_modes``: 10-40 N in a random world direction at a random link among panda_link3..7,
     0.3-2 s long, every 1.5-5 s.
@@ -118,12 +119,17 @@ def panda_recording(urdf, payload, lo, hi, n_samples, seed):
     w = 2 * np.pi * rng.uniform(0.05, 0.4, (7, 3))
     a = rng.uniform(0.3, 1.0, (7, 3))
     a *= (half / a.sum(1))[:, None]
-    a *= np.minimum(1.0, PANDA["max_speed"] / (a * w).sum(1))[:, None]
     ph = rng.uniform(0, 2 * np.pi, (7, 3))
+    we = np.pi / ENVELOPE_S
+    # |d/dt (e x)| <= |x'| + |e'| |x| with e = sin^2 <= 1, |e'| <= we
+    a *= np.minimum(1.0, PANDA["max_speed"] / ((a * w).sum(1) + we * a.sum(1)))[:, None]
 
     def reference(t):
         x = w * t + ph
-        return centre + (a * np.sin(x)).sum(1), (a * w * np.cos(x)).sum(1), -(a * w * w * np.sin(x)).sum(1)
+        s, c = np.sin(x), np.cos(x)
+        e, de, dde = np.sin(we * t) ** 2, we * np.sin(2 * we * t), 2 * we * we * np.cos(2 * we * t)
+        p, dp, ddp = (a * s).sum(1), (a * w * c).sum(1), -(a * w * w * s).sum(1)
+        return centre + e * p, de * p + e * dp, dde * p + 2 * de * dp + e * ddp
 
     duration = n_samples / 100.0
     pushes, t = [], rng.uniform(1.0, 3.0)

@@ -451,11 +451,11 @@ class MultimodalSEM:
         import torch
 
         # Each sweep is many small factorisations; with several threads, OpenMP spin-waiting
-        # makes them 10-100x slower whenever another process competes for the cores, and one
-        # thread is as fast when it does not. Large supports still get every core.
+        # made them 10-100x slower whenever another process competed for the cores (a 5,000
+        # sample 7-DOF sweep: 50-90 s on two threads under load, 3-7 s on one), and one thread
+        # loses little when the machine is idle.
         prev_threads = torch.get_num_threads()
-        if self.max_support <= 1500 and len(X) <= 2000:
-            torch.set_num_threads(1)
+        torch.set_num_threads(1)
         try:
             return self._fit(X, Y, t=t, starts=starts, init_states=init_states)
         finally:

@@ -209,8 +209,9 @@ def test_payload_modes_are_found_with_their_masses(cases):
 
 
 def test_gate_and_union_of_scan_and_learner_flags():
-    """_combine against its definition, span by span: a scanned span survives the gate iff the
-    learner flags at least one of its samples; the union flags a sample iff either does."""
+    """_combine against its definition, span by span: a scanned span survives the gate iff its
+    peak is strong or the learner flags at least one of its samples; the union flags a sample iff
+    either does."""
     from mmgp.diagnose import _combine, _runs
 
     rng = np.random.default_rng(5)
@@ -218,11 +219,12 @@ def test_gate_and_union_of_scan_and_learner_flags():
         scan = rng.uniform(size=200) < 0.1
         scan = np.convolve(scan, np.ones(7), "same") > 0  # spans of several samples
         p = rng.uniform(size=200) ** 6
-        gated, info = _combine(scan, p, "gate")
+        peaks = rng.uniform(1, 10, size=len(_runs(scan)))
+        gated, info = _combine(scan, p, "gate", peaks=peaks, strong=5.0)
         want = np.zeros(200, bool)
         kept = 0
-        for a, b in _runs(scan):
-            if any(p[i] > 0.5 for i in range(a, b)):
+        for (a, b), pk in zip(_runs(scan), peaks):
+            if pk >= 5.0 or any(p[i] > 0.5 for i in range(a, b)):
                 want[a:b] = True
                 kept += 1
         assert (gated == want).all() and info["spans_dropped_by_em"] == len(_runs(scan)) - kept
