@@ -269,7 +269,7 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
     except InputError as exc:
         _fail(exc)
     report = out / "report.md"
-    typer.echo(report.read_text() if report.is_file() else json.dumps(res.to_json(), indent=2))
+    typer.echo(report.read_text() if report.is_file() else (out / "findings.json").read_text())
 
 
 @app.command()
