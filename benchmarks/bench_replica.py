@@ -33,8 +33,9 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
     ap.add_argument("--estep", default="ffbs")
     ap.add_argument("--no-baselines", action="store_true")
+    ap.add_argument("--config", default=None)
     args = ap.parse_args()
-    cfg = load_config(estep=args.estep)
+    cfg = load_config(args.config, estep=args.estep)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:

@@ -14,11 +14,13 @@ damping: a "pure stiffness", and ``K = 0``: "zero impedance"):
   * ``learned``: the exported passive feedforward of a model LEARNED by mmgp, exactly as a user
     gets it: a MuJoCo recording of the same plant (lever: ``actuator_replica(seed)``, 330 samples
     at 20 Hz, quasi-static with pushes; Panda: ``mmgp.sim.simulate`` with the payload, exciting
-    sum-of-sinusoids motion within +-0.6 rad of the home pose under computed torque on the
-    payload-free model, pushes, sensor noise, 100 Hz), written as a contract log,
+    sum-of-sinusoids motion within +-0.6 rad of the home pose, back at rest there every 5 s, under
+    computed torque on the payload-free model, pushes, sensor noise, 100 Hz), written as a contract log,
     ``mmgp.model.train`` (lever: no robot; Panda: ``load_robot(robot="panda")``, so the GP learns
     the residual on top of the rigid-body model), ``compensator_from_model(result.model)``,
     ``.save``, ``mmgp.load_compensator`` (numpy) in the 1 kHz loop,
+  * ``learned, sign-averaged`` (diagnostic): the same trained model with its Coulomb input
+    averaged over +-1 instead of set to tanh(0) = 0 (:class:`SignAveragedModel`), exported alike,
   * ``stand-in``: the same export applied to the plant's exact static torque (MuJoCo
     ``qfrc_bias`` at rest, including the payload) on random configurations: what the export does
     to a perfect model.
