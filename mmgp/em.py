@@ -526,7 +526,13 @@ class MultimodalSEM:
                 loglik[:, k] = (-0.5 * (LOG_2PI + np.log(var) + (Y - mean) ** 2 / var)).sum(1)
                 if self.disturbance:
                     vd = var + sigma_d
-                    loglik[:, K + k] = (-0.5 * (LOG_2PI + np.log(vd) + (Y - mean) ** 2 / vd)).sum(1)
+                    ll_push = -0.5 * (LOG_2PI + np.log(vd) + (Y - mean) ** 2 / vd)
+                    if n > 1:
+                        # A push on one link loads only some joints: per joint, a 50/50 mixture of
+                        # "untouched" and "pushed", so unaffected joints cost at most log 2 each.
+                        ll_free = -0.5 * (LOG_2PI + np.log(var) + (Y - mean) ** 2 / var)
+                        ll_push = np.logaddexp(ll_free, ll_push) - np.log(2.0)
+                    loglik[:, K + k] = ll_push.sum(1)
             timings["gp_s"] += time.perf_counter() - ts
             te = time.perf_counter()
             A = transition_matrix(K, stay, p_enter if self.disturbance else None,
