@@ -381,14 +381,18 @@ class MultimodalSEM:
             support = np.sort(rng.choice(support, self.max_support, replace=False))
         gp = self._new_gp()
         windowed = self._t_axis is not None and self.exclusion_s > 0 and self.block_s > 0
+        T = len(Y)
         if windowed and optimise:
             # Condition once on the fitting subset to get the standardisation, then tune there.
             fit_idx = support
             if len(fit_idx) > self.fit_points:
                 fit_idx = np.sort(rng.choice(support, self.fit_points, replace=False))
             gp.fit(X[fit_idx], Y[fit_idx], hyper=hyper or default_hyper(X.shape[1], Y.shape[1]), optimise=False)
+            # Warm-started refits on long logs (where refits dominate the cost) get half the
+            # iterations of the first fit.
+            iters = self.fit_iter if (hyper is None or T <= 2000) else max(10, self.fit_iter // 2)
             hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, self._t_axis[fit_idx], self.block_s / 2.0,
-                                            gp.hyper_, max_iter=self.fit_iter)
+                                            gp.hyper_, max_iter=iters)
             optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
         T, n = Y.shape
