@@ -27,6 +27,17 @@ def _fail(exc: Exception) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+def _check_device(device: Optional[str]) -> None:
+    from .gp import resolve_device
+
+    if device is None:
+        return
+    try:
+        resolve_device(device)
+    except (ValueError, RuntimeError) as exc:
+        raise InputError(f"--device {device}: {exc}") from None
+
+
 def _robot_for(log_path, robot: Optional[str], urdf: Optional[Path], n_joints: Optional[int] = None):
     from .robot import load_robot
 
@@ -81,6 +92,7 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
     from .model import train as run_train
 
     try:
+        _check_device(device)
         cfg = load_config(config, modes=modes, disturbance=disturbance, device=device, seed=seed)
         robot_model = _robot_for(logs[0], robot, urdf)
         with atomic_output_dir(out, force=force) as tmp:
@@ -278,6 +290,7 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
             robot: Optional[str] = typer.Option(None, "--robot"),
             urdf: Optional[Path] = typer.Option(None, "--urdf"),
             max_train: int = typer.Option(1000, "--max-train", help="Training samples per fold."),
+            device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, auto."),
             force: bool = typer.Option(False, "--force")):
     """Held-out (time-block) normalised MSE per joint: rigid body only, GP only, rigid body + GP."""
     from .compare import compare as run_compare, format_compare, write_compare
@@ -285,11 +298,12 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
     from .signals import complete_derivatives
 
     try:
+        _check_device(device)
         robot_model = _robot_for(log, robot, urdf)
         lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints if robot_model else None,
                                            joint_names=robot_model.joint_names if robot_model else None))
         with atomic_output_dir(out, force=force) as tmp:
-            res = run_compare(lg, robot_model, max_train=max_train,
+            res = run_compare(lg, robot_model, max_train=max_train, gp_options={"device": device},
                               progress=lambda msg: typer.echo(msg, err=True))
             write_compare(res, tmp)
     except InputError as exc:

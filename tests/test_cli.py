@@ -125,3 +125,14 @@ def test_bad_config_key_is_refused(tmp_path):
     cfg.write_text("modez: 2\n")
     res = runner.invoke(app, ["train", str(LOG), "--out", str(tmp_path / "o"), "--config", str(cfg)])
     assert res.exit_code == 2 and "modez" in res.output
+
+
+def test_unavailable_device_is_a_clear_error(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        return  # nothing to refuse on a machine with CUDA; the CPU path is tested above
+    res = runner.invoke(app, ["train", str(LOG), "--out", str(tmp_path / "o"), "--device", "cuda", "--quiet"])
+    assert res.exit_code == 2 and "cuda" in res.output
+    res = runner.invoke(app, ["compare", str(LOG), "--out", str(tmp_path / "c"), "--device", "cuda"])
+    assert res.exit_code == 2 and "cuda" in res.output
