@@ -176,8 +176,6 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
          force: bool = typer.Option(False, "--force")):
     """Train and evaluate on the shipped 1-DOF replica of the source experiment (MuJoCo,
     0.73 kg load, Bowden-cable-like friction, pushes, 20 Hz) and print our figures beside the source's."""
-    import pandas as pd
-
     from .config import load_config
     from .evaluate import classification_figures, format_figures
     from .io import atomic_output_dir, atomic_write_bytes, read_labels

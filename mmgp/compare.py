@@ -24,7 +24,6 @@ the normalised MSE per joint of these pooled out-of-fold predictions
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import numpy as np
 
 from .evaluate import normalised_mse
 from .gp import ExactGP, default_hyper
-from .io import RobotLog, atomic_write_bytes
+from .io import RobotLog, atomic_write_bytes, jsonable
 from .signals import SavitzkyGolay, time_block_folds
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
@@ -215,23 +214,6 @@ def format_compare(result: dict) -> str:
     return "\n".join(lines)
 
 
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if math.isfinite(x) else None
-    return x
-
-
 def write_compare(result: dict, out_dir) -> list[Path]:
     """Write ``out_dir/compare.json`` (the result) and ``out_dir/compare.png`` (grouped bars of
     normalised MSE per joint, log scale, dashed line at 1 = predicting the mean). Returns the paths."""
@@ -245,7 +227,7 @@ def write_compare(result: dict, out_dir) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     js = out_dir / "compare.json"
-    atomic_write_bytes(js, (json.dumps(_jsonable(result), indent=2) + "\n").encode())
+    atomic_write_bytes(js, (json.dumps(jsonable(result), indent=2) + "\n").encode())
 
     methods = result["methods"]
     names = result["joint_names"]

@@ -42,14 +42,14 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field, asdict
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from . import effects as fx
-from .io import RobotLog
+from .io import RobotLog, jsonable
 
 STAGES = ("nominal", "with_physics", "with_physics_and_gp")
 
@@ -781,7 +781,7 @@ class DiagnosisResult:
         return {"findings": self.findings, "fit": self.fit, "location": self.location, "info": self.info}
 
     def to_json(self, indent: int = 2) -> str:
-        return json.dumps(_jsonable(self.to_dict()), indent=indent)
+        return json.dumps(jsonable(self.to_dict()), indent=indent)
 
     def report_markdown(self) -> str:
         lines = ["# Sim-vs-real diagnosis", ""]
@@ -836,22 +836,6 @@ class DiagnosisResult:
             write_table(out / "labels.parquet", pd.DataFrame(self.labels))
         (out / "report.md").write_text(self.report_markdown())
         return out
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
 
 
 def _plot(d: dict, out: Path) -> list[str]:
@@ -959,7 +943,7 @@ def diagnose(log: RobotLog, robot, *, config: DiagnoseConfig | dict | None = Non
 def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturbed=None) -> DiagnosisResult:
     cfg = DiagnoseConfig.from_dict(config)
     t0 = time.perf_counter()
-    from .signals import complete_derivatives, time_block_folds
+    from .signals import complete_derivatives
 
     if log.dq is None or log.ddq is None:
         log = complete_derivatives(log)

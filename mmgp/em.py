@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
@@ -171,7 +171,6 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
     Xs = gp.Xs_
     A = torch.cholesky_inverse(gp.L_)                                     # (m, S, S)
     alpha = gp.alpha_                                                     # (m, S)
-    m = A.shape[0]
     lo = np.searchsorted(ts, tq - radius, side="left")
     hi = np.searchsorted(ts, tq + radius, side="right")
     Xq_s = torch.as_tensor(gp.x_scaler_.transform(np.asarray(Xq, dtype=np.float64)), dtype=A.dtype, device=dev)

@@ -317,6 +317,28 @@ class Standardiser:
         return (A - self.mean_) / self.scale_
 
 
+def check_xy(X, Y) -> tuple[np.ndarray, np.ndarray, bool]:
+    """float64 X (N, d) and Y (N, m), and whether Y was given as a vector (N,)."""
+    X = np.asarray(X, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+    vector = Y.ndim == 1
+    if vector:
+        Y = Y[:, None]
+    if X.ndim != 2 or Y.shape[0] != X.shape[0]:
+        raise ValueError(f"X must be (N, d) and Y (N, m) with the same N; got {X.shape} and {Y.shape}")
+    return X, Y, vector
+
+
+def prepare_fit(est, X, Y) -> tuple[np.ndarray, np.ndarray]:
+    """Start of every GP's fit: checked float64 arrays; sets ``est``'s ``_vector_output``,
+    ``dev_`` (from ``est.device``) and the input/output standardisers."""
+    X, Y, est._vector_output = check_xy(X, Y)
+    est.dev_ = resolve_device(est.device)
+    est.x_scaler_ = Standardiser().fit(X)
+    est.y_scaler_ = Standardiser().fit(Y)
+    return X, Y
+
+
 class ExactGP:
     """Exact GP regression with an RBF kernel, one independent GP per output column.
 
@@ -354,16 +376,7 @@ class ExactGP:
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "ExactGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
-        X = np.asarray(X, dtype=np.float64)
-        Y = np.asarray(Y, dtype=np.float64)
-        self._vector_output = Y.ndim == 1
-        if Y.ndim == 1:
-            Y = Y[:, None]
-        if X.ndim != 2 or Y.shape[0] != X.shape[0]:
-            raise ValueError(f"X must be (N, d) and Y (N, m) with the same N; got {X.shape} and {Y.shape}")
-        self.dev_ = resolve_device(self.device)
-        self.x_scaler_ = Standardiser().fit(X)
-        self.y_scaler_ = Standardiser().fit(Y)
+        X, Y = prepare_fit(self, X, Y)
         Xs = torch.as_tensor(self.x_scaler_.transform(X), dtype=DTYPE, device=self.dev_)
         Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
         init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])

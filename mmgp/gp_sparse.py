@@ -35,8 +35,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .gp import (DTYPE, LOG_2PI, ExactGP, Hyper, Standardiser, default_hyper, fit_hyper_subsets,
-                 rbf_kernel, resolve_device, robust_cholesky)
+from .gp import (DTYPE, LOG_2PI, ExactGP, Hyper, default_hyper, fit_hyper_subsets, prepare_fit,
+                 rbf_kernel, robust_cholesky)
 
 
 def kmeans_inducing(Xs: np.ndarray, n_inducing: int, seed: int = 0) -> np.ndarray:
@@ -86,16 +86,7 @@ class SparseGP:
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "SparseGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
-        X = np.asarray(X, dtype=np.float64)
-        Y = np.asarray(Y, dtype=np.float64)
-        self._vector_output = Y.ndim == 1
-        if Y.ndim == 1:
-            Y = Y[:, None]
-        if X.ndim != 2 or Y.shape[0] != X.shape[0]:
-            raise ValueError(f"X must be (N, d) and Y (N, m) with the same N; got {X.shape} and {Y.shape}")
-        self.dev_ = resolve_device(self.device)
-        self.x_scaler_ = Standardiser().fit(X)
-        self.y_scaler_ = Standardiser().fit(Y)
+        X, Y = prepare_fit(self, X, Y)
         Xn = self.x_scaler_.transform(X)
         Xs = torch.as_tensor(Xn, dtype=DTYPE, device=self.dev_)
         Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)

@@ -345,6 +345,25 @@ def atomic_output_dir(out: str | os.PathLike, *, force: bool = False) -> Iterato
         os.replace(tmp, out)
 
 
+def jsonable(x):
+    """Plain-JSON copy of nested dicts/lists/arrays/numpy scalars; non-finite floats become None
+    (JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return x if np.isfinite(x) else None
+    return x
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write a file completely or not at all."""
     path = Path(path)

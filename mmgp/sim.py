@@ -18,7 +18,6 @@ Units: s, rad, rad/s, rad/s^2, N*m, N, kg, m. Array shapes are (T, n) for T samp
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -31,43 +30,14 @@ import pandas as pd
 # Locating URDFs
 # ----------------------------------------------------------------------------------------------
 
-_ERD_REL = Path("cmeel.prefix") / "share" / "example-robot-data" / "robots"
-
-
-def _erd_robots_dir() -> Path:
-    candidates = [Path(p) / _ERD_REL for p in sys.path if p]
-    candidates.append(Path(sys.prefix) / "share" / "example-robot-data" / "robots")
-    try:  # pinocchio's wheel lives in the same cmeel prefix as example-robot-data
-        import pinocchio
-
-        candidates.append(Path(pinocchio.__file__).resolve().parents[4] / "share" / "example-robot-data" / "robots")
-    except Exception:  # noqa: BLE001 - only a hint
-        pass
-    for c in candidates:
-        if c.is_dir():
-            return c
-    raise FileNotFoundError("example-robot-data robots folder not found (pip install example-robot-data)")
 
 
 def robot_urdf_path(name: str) -> str:
-    """Path of the URDF of an example-robot-data robot (e.g. ``"panda"``, ``"ur5"``).
+    """Path (str) of the URDF of an example-robot-data robot (e.g. ``"panda"``, ``"ur5"``);
+    the lookup is :func:`mmgp.robot.robot_urdf_path`."""
+    from .robot import robot_urdf_path as _lookup
 
-    Looked up as ``<name>_description/urdf/<name>.urdf``, then ``<name>_robot.urdf`` in any
-    description folder, then ``<family>_description/urdf/<name>*.urdf`` for names like ``ur5``.
-    """
-    root = _erd_robots_dir()
-    direct = root / f"{name}_description" / "urdf" / f"{name}.urdf"
-    if direct.is_file():
-        return str(direct)
-    for pattern in (f"*/urdf/{name}.urdf", f"*/urdf/{name}_robot.urdf", f"*/robots/{name}.urdf"):
-        hits = sorted(root.glob(pattern))
-        if hits:
-            return str(hits[0])
-    family = name.rstrip("0123456789e")
-    hits = sorted(root.glob(f"{family}_description/urdf/{name}*.urdf"))
-    if hits:
-        return str(hits[0])
-    raise FileNotFoundError(f"no URDF for robot '{name}' under {root}")
+    return str(_lookup(name))
 
 
 def panda_urdf_path() -> str:
