@@ -25,6 +25,10 @@ class TrainConfig:
     exclusion_s: samples within this many seconds of a sample are left out of its likelihood
         (leave-window-out; 0 = plain leave-one-out).
     friction_feature: add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step).
+    rbd_basis: with a robot and "residual", each mode's mean is linear in the robot's
+        inertial-parameter regressor (every link's mass, first and second moments corrected per
+        mode and joint, fitted robustly); the GP learns the rest. A payload or an inertial error
+        then extrapolates like physics to states the mode's data never visited.
     max_support / fit_points / fit_iter / max_sweeps / min_sweeps / average_last: see MultimodalSEM.
     objective: "loo" (full LOO log predictive) or "marginal".
     ard: per-input lengthscales.
@@ -41,6 +45,7 @@ class TrainConfig:
     semiparametric: str = "residual"
     exclusion_s: float = 1.0
     friction_feature: bool = True
+    rbd_basis: bool = True
     max_support: int = 500
     final_support: int = 2000
     fit_points: int = 500

@@ -53,6 +53,7 @@ class Features:
     tau_rbd: np.ndarray | None
     starts: list[int]
     t: np.ndarray | None = None
+    basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
 
 
 def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
@@ -63,20 +64,20 @@ def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
 
 
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
-                   friction_scale: np.ndarray | None = None) -> Features:
+                   friction_scale: np.ndarray | None = None, rbd_basis: bool = False) -> Features:
     """GP inputs [q, dq, ddq, tanh(dq / v_s)(, tau_rbd)] and targets from checked logs."""
     q = np.concatenate([lg.q for lg in logs])
     dq = np.concatenate([lg.dq for lg in logs])
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale)
+    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, rbd_basis=rbd_basis)
     f.t = np.concatenate([lg.t for lg in logs])
     return f
 
 
 def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-              friction_sign: float | None = None) -> Features:
+              friction_sign: float | None = None, rbd_basis: bool = False) -> Features:
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
@@ -90,7 +91,8 @@ def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scal
         if semiparametric == "feature":
             X = np.concatenate([X, tau_rbd], axis=1)
     Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
-    return Features(X, Y, tau_rbd, list(starts))
+    basis = robot.regressor(q, dq, ddq) if (rbd_basis and tau_rbd is not None and semiparametric == "residual") else None
+    return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
 class TrainedModel:
@@ -103,13 +105,16 @@ class TrainedModel:
 
     def __init__(self, *, config: TrainConfig, joint_names: list[str], support_X: list[np.ndarray],
                  support_Y: list[np.ndarray], hypers: list[Hyper], robot_spec: dict | None = None,
-                 friction_scale: np.ndarray | None = None, report: dict | None = None):
+                 friction_scale: np.ndarray | None = None, report: dict | None = None,
+                 basis_coef: list[np.ndarray | None] | None = None):
         self.config = config
         self.friction_scale_ = None if friction_scale is None else np.asarray(friction_scale, dtype=np.float64)
         self.joint_names_ = list(joint_names)
         self.support_X_ = [np.asarray(a, dtype=np.float64) for a in support_X]
         self.support_Y_ = [np.asarray(a, dtype=np.float64) for a in support_Y]
         self.hypers_ = hypers
+        # Per mode (n, p) coefficients of the rigid-body regressor mean, or None.
+        self.basis_coef_ = list(basis_coef) if basis_coef is not None else [None] * len(self.support_X_)
         self.robot_spec = robot_spec or None
         self.report = report or {}
         self._robot = None
@@ -151,10 +156,14 @@ class TrainedModel:
         ``friction_sign`` (+1 or -1) overrides the smooth-sign friction input (sliding direction)."""
         q, dq, ddq = (np.atleast_2d(np.asarray(a, dtype=np.float64)) for a in (q, dq, ddq))
         semi = self.config.semiparametric if self.robot_spec else "none"
+        coef = self.basis_coef_[mode]
         f = _features(q, dq, ddq, np.zeros_like(q), semi, self.robot if self.robot_spec else None,
-                      friction_scale=self.friction_scale_, friction_sign=friction_sign)
+                      friction_scale=self.friction_scale_, friction_sign=friction_sign,
+                      rbd_basis=coef is not None)
         mean, std = self.gp(mode).predict(f.X, include_noise=True)
         mean, std = mean.reshape(len(q), -1), std.reshape(len(q), -1)
+        if coef is not None:
+            mean = mean + np.einsum("tjp,jp->tj", f.basis, coef)
         if f.tau_rbd is not None and semi == "residual":
             mean = mean + f.tau_rbd
         return mean, std
@@ -185,6 +194,8 @@ class TrainedModel:
             arrays[f"lengthscale_{k}"] = self.hypers_[k].lengthscale
             arrays[f"signal_var_{k}"] = self.hypers_[k].signal_var
             arrays[f"noise_var_{k}"] = self.hypers_[k].noise_var
+            if self.basis_coef_[k] is not None:
+                arrays[f"basis_coef_{k}"] = self.basis_coef_[k]
         if self.friction_scale_ is not None:
             arrays["friction_scale"] = self.friction_scale_
         np.savez(out_dir / "model.npz", **arrays)
@@ -209,8 +220,9 @@ class TrainedModel:
             sy = [z[f"Y_{k}"] for k in range(K)]
             hy = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
             fs = z["friction_scale"] if "friction_scale" in z.files else None
+            bc = [z[f"basis_coef_{k}"] if f"basis_coef_{k}" in z.files else None for k in range(K)]
         return cls(config=TrainConfig(**meta["config"]), joint_names=meta["joint_names"], support_X=sx,
-                   support_Y=sy, hypers=hy, robot_spec=meta.get("robot"), friction_scale=fs)
+                   support_Y=sy, hypers=hy, robot_spec=meta.get("robot"), friction_scale=fs, basis_coef=bc)
 
 
 @dataclass
@@ -231,7 +243,7 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     semi = cfg.semiparametric if robot is not None else "none"
     fscale = (friction_velocity_scale(np.concatenate([lg.dq for lg in logs]))
               if cfg.friction_feature else None)
-    feats = build_features(logs, semi, robot, fscale)
+    feats = build_features(logs, semi, robot, fscale, rbd_basis=cfg.rbd_basis)
     kw = dict(disturbance=cfg.disturbance, estep=cfg.estep, stay_prob=cfg.stay_prob, max_sweeps=cfg.max_sweeps,
               min_sweeps=cfg.min_sweeps, average_last=cfg.average_last, max_support=cfg.max_support,
               final_support=cfg.final_support,
@@ -240,9 +252,11 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
               gp_kwargs={"ard": cfg.ard, "objective": cfg.objective, "device": cfg.device})
     mode_selection = None
     if cfg.modes == "auto":
-        sem, mode_selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), t=feats.t, starts=feats.starts, **kw)
+        sem, mode_selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), t=feats.t, starts=feats.starts,
+                                             basis=feats.basis, **kw)
     else:
-        sem = MultimodalSEM(n_modes=int(cfg.modes), **kw).fit(feats.X, feats.Y, t=feats.t, starts=feats.starts)
+        sem = MultimodalSEM(n_modes=int(cfg.modes), **kw).fit(feats.X, feats.Y, t=feats.t, starts=feats.starts,
+                                                              basis=feats.basis)
     joint_names = logs[0].joint_names or (robot.joint_names if robot is not None else
                                           [f"joint_{j}" for j in range(logs[0].n_joints)])
     robot_spec = None
@@ -252,7 +266,7 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
                       "joint_names": robot.joint_names}
     hypers = [g.hyper_ for g in sem.gps_]
     model = TrainedModel(config=cfg, joint_names=joint_names, support_X=sem.support_X_, support_Y=sem.support_Y_,
-                         hypers=hypers, robot_spec=robot_spec, friction_scale=fscale)
+                         hypers=hypers, robot_spec=robot_spec, friction_scale=fscale, basis_coef=sem.coef_)
     model._robot = robot
     report = {
         "mmgp_version": __version__,

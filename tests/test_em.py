@@ -16,9 +16,9 @@ from scipy.stats import multivariate_normal, norm
 from sklearn.metrics import adjusted_rand_score
 
 import mmgp.gp as gp_module
-from mmgp.em import (MultimodalSEM, _blocks, block_loo_log_predictive, ffbs_sample, forward_backward,
-                     gibbs_conditionals, gibbs_sweep, sequence_log_prior, transition_matrix,
-                     windowed_predictive)
+from mmgp.em import (MultimodalSEM, _blocks, basis_rank, block_loo_log_predictive, ffbs_sample,
+                     fit_basis_coefficients, forward_backward, gibbs_conditionals, gibbs_sweep,
+                     sequence_log_prior, transition_matrix, windowed_predictive)
 from mmgp.gp import DTYPE, ExactGP, Hyper, log_marginal_likelihood
 
 
@@ -234,7 +234,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
         # (a) the em's own emission code
         loglik = np.empty((N, 2))
         for k in range(2):
-            mean, var, _, _ = sem._mode_likelihoods(x[:, None], y[:, None], np.flatnonzero(w == k), hyper, False, rng)
+            mean, var, *_ = sem._mode_likelihoods(x[:, None], y[:, None], np.flatnonzero(w == k), hyper, False, rng)
             loglik[:, k] = norm.logpdf(y, mean[:, 0], np.sqrt(var[:, 0]))
         p_em = gibbs_conditionals(loglik, A, init, w, np.arange(N))
         np.testing.assert_allclose(p_em, exact, atol=1e-8)
@@ -389,3 +389,70 @@ def test_planted_disturbance_bursts_are_flagged(estep):
     assert recall >= 0.9, recall
     assert false_alarm <= 0.05, false_alarm
     np.testing.assert_array_equal(flagged, m.p_disturbed_ > 0.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# Linear basis mean (rigid-body regressor)
+# ---------------------------------------------------------------------------------------------
+
+def test_basis_coefficients_equal_least_squares_without_outliers():
+    rng = np.random.default_rng(0)
+    N, n, p = 300, 3, 5
+    basis = rng.normal(size=(N, n, p)) * np.array([1.0, 10.0, 0.1, 3.0, 1.0])
+    coef = rng.normal(size=(n, p))
+    Y = np.einsum("tjp,jp->tj", basis, coef) + 0.01 * rng.normal(size=(N, n))
+    # One IRLS step has unit weights: ordinary least squares per output, the reference.
+    ols = fit_basis_coefficients(basis, Y, n_irls=1)
+    for j in range(n):
+        ref, *_ = np.linalg.lstsq(basis[:, j, :], Y[:, j], rcond=None)
+        np.testing.assert_allclose(ols[j], ref, rtol=1e-8, atol=1e-10)
+    # The Huber fit stays within 4 standard errors of the truth: noise / (column scale sqrt(N)).
+    se = 0.01 / (np.array([1.0, 10.0, 0.1, 3.0, 1.0]) * math.sqrt(N))
+    assert (np.abs(fit_basis_coefficients(basis, Y) - coef) < 4 * se).all()
+
+
+def test_basis_coefficients_resist_gross_outliers_and_ignore_invisible_columns():
+    rng = np.random.default_rng(1)
+    N, n, p = 400, 2, 4
+    basis = rng.normal(size=(N, n, p))
+    basis[:, 0, 3] = 0.0                     # a parameter joint 0 cannot see
+    basis[:, 1, 2] = basis[:, 1, 1]          # two columns joint 1 cannot tell apart
+    coef = np.array([[1.0, -2.0, 0.5, 0.0], [0.3, 1.0, 1.0, -1.0]])
+    Y = np.einsum("tjp,jp->tj", basis, coef) + 0.02 * rng.normal(size=(N, n))
+    Y[rng.choice(N, 40, replace=False)] += 20.0          # 10% pushes of 1,000 noise sigmas
+    got = fit_basis_coefficients(basis, Y)
+    plain = np.linalg.lstsq(basis[:, 0, :3], Y[:, 0], rcond=None)[0]
+    assert np.abs(plain - coef[0, :3]).max() > 0.2      # least squares is dragged away ...
+    np.testing.assert_allclose(got[0, :3], coef[0, :3], atol=0.02)   # ... Huber is not
+    assert got[0, 3] == 0.0
+    # Only the sum of the twin columns is identifiable; the minimum-norm split is even.
+    np.testing.assert_allclose(got[1, 1] + got[1, 2], 2.0, atol=0.02)
+    np.testing.assert_allclose(got[1, 1], got[1, 2], atol=1e-6)
+    np.testing.assert_allclose(got[1, [0, 3]], coef[1, [0, 3]], atol=0.02)
+    assert basis_rank(basis) == 3 + 3
+
+
+def test_basis_mean_extrapolates_a_planted_mode_offset():
+    """Two modes that differ by a linear term in a known regressor (a 'payload'): with the basis
+    the difference is learned as coefficients and predicted exactly far outside the data; the
+    GP alone can only revert to its mean there."""
+    t, x, _ = planted_signal()
+    rng = np.random.default_rng(2)
+    mode = (((t >= 4) & (t < 8)) | ((t >= 11) & (t < 13.5))).astype(int)
+
+    def regressor(x):
+        return np.stack([np.cos(x), np.sin(x), np.ones_like(x)], axis=-1)[:, None, :]   # (T, 1, 3)
+
+    # Shared physics in the basis plus a small wiggle only the GP can follow.
+    y = 0.8 * np.sin(x) + 0.2 * np.sin(3.0 * x) + mode * 1.5 * np.cos(x) + 0.05 * rng.normal(size=len(t))
+    basis = regressor(x)
+    m = MultimodalSEM(n_modes=2, disturbance=False, max_sweeps=15, seed=0).fit(
+        x[:, None], y[:, None], t=t, basis=basis)
+    assert adjusted_rand_score(mode, m.labels_) >= 0.95
+    payload = 1 if (m.labels_[mode == 1] == 1).mean() > 0.5 else 0
+    xq = np.linspace(4.0, 6.0, 50)            # the data span |x| <= 2.3
+    bq = regressor(xq)
+    diff = m.predict(xq[:, None], mode=payload, basis=bq)[0] - m.predict(xq[:, None], mode=1 - payload, basis=bq)[0]
+    np.testing.assert_allclose(diff.ravel(), 1.5 * np.cos(xq), atol=0.1)
+    with pytest.raises(ValueError, match="basis"):
+        m.predict(xq[:, None], mode=0)
