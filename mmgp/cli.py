@@ -126,7 +126,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
         if out.exists() and not force:
             raise InputError("output exists (use --force to replace it)", file=out)
         lg = complete_derivatives(read_log(log, n_joints=model.n_joints),
-                                  SavitzkyGolay(window_s=model.config.diff_window_s))
+                                  SavitzkyGolay(window_s=model.config.diff_window_s, cv=True))
         if not 0 <= mode < model.n_modes:
             raise InputError(f"--mode must be in 0..{model.n_modes - 1}")
         mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)

@@ -19,16 +19,18 @@ class TrainConfig:
     estep: "ffbs" (joint label sampling; default, see benchmarks/bench_estep.py) or "gibbs".
     stay_prob: fixed p(mode_t = mode_{t-1}); null learns it.
     rate_hz: downsample to about this rate after differentiating (null keeps the log's rate).
-    diff_window_s: Savitzky-Golay window in seconds (null: from the sample rate).
+    diff_window_s: Savitzky-Golay window in seconds (null: per joint, by leave-one-out
+        cross-validation of the smoother, between max(5 samples, 0.05 s) and 0.5 s).
     semiparametric: with a robot model, "residual" (GP learns tau - tau_rbd; default),
         "feature" (tau_rbd is an extra GP input) or "none".
     exclusion_s: samples within this many seconds of a sample are left out of its likelihood
         (leave-window-out; 0 = plain leave-one-out).
     friction_feature: add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step).
-    rbd_basis: with a robot and "residual", each mode's mean is linear in the robot's
-        inertial-parameter regressor (every link's mass, first and second moments corrected per
-        mode and joint, fitted robustly); the GP learns the rest. A payload or an inertial error
-        then extrapolates like physics to states the mode's data never visited.
+    mean_basis: "auto" (default) or "rbd": with a robot and "residual", each mode's mean is
+        linear in the robot's inertial-parameter regressor (every link's mass, first and second
+        moments corrected per mode and joint, fitted robustly) and the GP learns the rest, so a
+        payload or an inertial error extrapolates like physics to states the mode's data never
+        visited; "none" turns it off ("auto" is "none" without a robot).
     max_support / fit_points / fit_iter / max_sweeps / min_sweeps / average_last: see MultimodalSEM.
     objective: "loo" (full LOO log predictive) or "marginal".
     ard: per-input lengthscales.
@@ -45,7 +47,7 @@ class TrainConfig:
     semiparametric: str = "residual"
     exclusion_s: float = 1.0
     friction_feature: bool = True
-    rbd_basis: bool = True
+    mean_basis: str = "auto"
     max_support: int = 500
     final_support: int = 2000
     fit_points: int = 500
@@ -66,6 +68,8 @@ class TrainConfig:
             bad("modes", f"expected a positive integer or 'auto', got {self.modes!r}")
         if self.estep not in ("ffbs", "gibbs"):
             bad("estep", f"expected 'ffbs' or 'gibbs', got {self.estep!r}")
+        if self.mean_basis not in ("auto", "rbd", "none"):
+            bad("mean_basis", f"expected 'auto', 'rbd' or 'none', got {self.mean_basis!r}")
         if self.semiparametric not in ("residual", "feature", "none"):
             bad("semiparametric", f"expected 'residual', 'feature' or 'none', got {self.semiparametric!r}")
         if self.objective not in ("loo", "marginal"):

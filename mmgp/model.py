@@ -37,7 +37,7 @@ def load_logs(paths: Sequence[str | Path], cfg: TrainConfig, robot=None) -> list
             n_ref = log.n_joints
         elif log.n_joints != n_ref:
             raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=p, column="q_0")
-        log = complete_derivatives(log, SavitzkyGolay(window_s=cfg.diff_window_s))
+        log = complete_derivatives(log, SavitzkyGolay(window_s=cfg.diff_window_s, cv=True))
         if cfg.rate_hz is not None:
             log = downsample(log, cfg.rate_hz)
         logs.append(log)
@@ -63,21 +63,31 @@ def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
     return np.maximum(v, 1e-6)
 
 
+def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
+    """The mean basis a model uses: "rbd" or None (see TrainConfig.mean_basis)."""
+    rbd_ok = robot is not None and semiparametric == "residual"
+    if kind == "auto":
+        return "rbd" if rbd_ok else None
+    if kind == "rbd" and not rbd_ok:
+        raise InputError("mean_basis 'rbd' needs a robot model and semiparametric 'residual'")
+    return None if kind == "none" else kind
+
+
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
-                   friction_scale: np.ndarray | None = None, rbd_basis: bool = False) -> Features:
+                   friction_scale: np.ndarray | None = None, basis_kind: str | None = None) -> Features:
     """GP inputs [q, dq, ddq, tanh(dq / v_s)(, tau_rbd)] and targets from checked logs."""
     q = np.concatenate([lg.q for lg in logs])
     dq = np.concatenate([lg.dq for lg in logs])
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, rbd_basis=rbd_basis)
+    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
     f.t = np.concatenate([lg.t for lg in logs])
     return f
 
 
 def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-              friction_sign: float | None = None, rbd_basis: bool = False) -> Features:
+              friction_sign: float | None = None, basis_kind: str | None = None) -> Features:
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
@@ -91,7 +101,7 @@ def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scal
         if semiparametric == "feature":
             X = np.concatenate([X, tau_rbd], axis=1)
     Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
-    basis = robot.regressor(q, dq, ddq) if (rbd_basis and tau_rbd is not None and semiparametric == "residual") else None
+    basis = robot.regressor(q, dq, ddq) if basis_kind == "rbd" else None
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
@@ -106,7 +116,7 @@ class TrainedModel:
     def __init__(self, *, config: TrainConfig, joint_names: list[str], support_X: list[np.ndarray],
                  support_Y: list[np.ndarray], hypers: list[Hyper], robot_spec: dict | None = None,
                  friction_scale: np.ndarray | None = None, report: dict | None = None,
-                 basis_coef: list[np.ndarray | None] | None = None):
+                 basis_coef: list[np.ndarray | None] | None = None, basis_kind: str | None = None):
         self.config = config
         self.friction_scale_ = None if friction_scale is None else np.asarray(friction_scale, dtype=np.float64)
         self.joint_names_ = list(joint_names)
@@ -115,6 +125,7 @@ class TrainedModel:
         self.hypers_ = hypers
         # Per mode (n, p) coefficients of the rigid-body regressor mean, or None.
         self.basis_coef_ = list(basis_coef) if basis_coef is not None else [None] * len(self.support_X_)
+        self.basis_kind_ = basis_kind
         self.robot_spec = robot_spec or None
         self.report = report or {}
         self._robot = None
@@ -159,7 +170,7 @@ class TrainedModel:
         coef = self.basis_coef_[mode]
         f = _features(q, dq, ddq, np.zeros_like(q), semi, self.robot if self.robot_spec else None,
                       friction_scale=self.friction_scale_, friction_sign=friction_sign,
-                      rbd_basis=coef is not None)
+                      basis_kind=self.basis_kind_ if coef is not None else None)
         mean, std = self.gp(mode).predict(f.X, include_noise=True)
         mean, std = mean.reshape(len(q), -1), std.reshape(len(q), -1)
         if coef is not None:
@@ -201,7 +212,7 @@ class TrainedModel:
         np.savez(out_dir / "model.npz", **arrays)
         meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
                 "n_modes": self.n_modes, "joint_names": self.joint_names_, "config": self.config.as_dict(),
-                "robot": self.robot_spec}
+                "robot": self.robot_spec, "mean_basis": self.basis_kind_}
         (out_dir / "model.json").write_text(json.dumps(meta, indent=2))
 
     @classmethod
@@ -222,7 +233,8 @@ class TrainedModel:
             fs = z["friction_scale"] if "friction_scale" in z.files else None
             bc = [z[f"basis_coef_{k}"] if f"basis_coef_{k}" in z.files else None for k in range(K)]
         return cls(config=TrainConfig(**meta["config"]), joint_names=meta["joint_names"], support_X=sx,
-                   support_Y=sy, hypers=hy, robot_spec=meta.get("robot"), friction_scale=fs, basis_coef=bc)
+                   support_Y=sy, hypers=hy, robot_spec=meta.get("robot"), friction_scale=fs, basis_coef=bc,
+                   basis_kind=meta.get("mean_basis"))
 
 
 @dataclass
@@ -243,7 +255,8 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     semi = cfg.semiparametric if robot is not None else "none"
     fscale = (friction_velocity_scale(np.concatenate([lg.dq for lg in logs]))
               if cfg.friction_feature else None)
-    feats = build_features(logs, semi, robot, fscale, rbd_basis=cfg.rbd_basis)
+    basis_kind = resolve_mean_basis(cfg.mean_basis, robot, semi)
+    feats = build_features(logs, semi, robot, fscale, basis_kind=basis_kind)
     kw = dict(disturbance=cfg.disturbance, estep=cfg.estep, stay_prob=cfg.stay_prob, max_sweeps=cfg.max_sweeps,
               min_sweeps=cfg.min_sweeps, average_last=cfg.average_last, max_support=cfg.max_support,
               final_support=cfg.final_support,
@@ -266,7 +279,8 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
                       "joint_names": robot.joint_names}
     hypers = [g.hyper_ for g in sem.gps_]
     model = TrainedModel(config=cfg, joint_names=joint_names, support_X=sem.support_X_, support_Y=sem.support_Y_,
-                         hypers=hypers, robot_spec=robot_spec, friction_scale=fscale, basis_coef=sem.coef_)
+                         hypers=hypers, robot_spec=robot_spec, friction_scale=fscale, basis_coef=sem.coef_,
+                         basis_kind=basis_kind)
     model._robot = robot
     report = {
         "mmgp_version": __version__,
@@ -277,6 +291,8 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
         "derivatives_estimated": {"dq": any(lg.dq_estimated for lg in logs), "ddq": any(lg.ddq_estimated for lg in logs)},
         "robot": robot_spec,
         "semiparametric": semi,
+        # The per-mode coefficients themselves are in model.npz (basis_coef_<k>).
+        "mean_basis": {"kind": basis_kind, "rank": int(sem.basis_rank_)},
         "config": cfg.as_dict(),
         "n_modes": len(sem.gps_),
         "mode_selection": mode_selection,
