@@ -12,6 +12,10 @@ Emission (per joint independent, product over joints):
   source's disturbance mode ``N(mu, Sigma + Sigma_d)`` around the nominal mode; for K > 1 a
   push can happen in any mode, so the disturbance is centred on the sample's own mode.
 
+With a ``basis`` (T, n, p) (e.g. a robot's inertial-parameter regressor), mode k's mean is
+``basis @ coef_k`` plus its GP, the coefficients re-fitted robustly on the mode's undisturbed
+samples every sweep (per joint, or one vector shared by all joints with ``shared_basis``).
+
 Temporal prior: a Markov chain with ``p(k_t = k_{t-1}) = pi`` (the source's "stay" prior) and,
 independently, a two-state chain on ``d`` (enter / leave a push). Both are re-estimated from
 the sampled label sequences with weak Beta priors, unless fixed in the settings.
@@ -345,6 +349,32 @@ def fit_basis_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 4,
     return coef
 
 
+def fit_shared_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 5,
+                            huber: float = 1.345) -> np.ndarray:
+    """One coefficient vector for all outputs, returned as (n, p) with equal rows:
+    Y[:, j] ~ basis[:, j, :] @ c for every j (e.g. a payload's 10 inertial parameters, which
+    load every joint). Huber-weighted least squares over the stacked (N * n) rows, each output's
+    rows scaled by its robust residual scale, re-estimated every IRLS step. basis (N, n, p)."""
+    N, n, p = basis.shape
+    A = basis.reshape(N * n, p)
+    rms = np.sqrt((A ** 2).mean(0))
+    cols = np.flatnonzero(rms > 1e-12 * (rms.max() + 1e-300))
+    coef = np.zeros(p)
+    if len(cols) == 0:
+        return np.zeros((n, p))
+    As = basis[:, :, cols] / rms[cols]                          # (N, n, k)
+    scale = Y.std(0) + 1e-12                                    # first pass: the outputs' spread
+    w = np.ones((N, n))
+    for _ in range(n_irls):
+        sw = np.sqrt(w) / scale
+        c, *_ = np.linalg.lstsq((As * sw[:, :, None]).reshape(N * n, -1), (Y * sw).ravel(), rcond=1e-7)
+        r = Y - As @ c
+        scale = 1.4826 * np.median(np.abs(r - np.median(r, 0)), 0) + 1e-12
+        w = np.minimum(1.0, huber * scale / np.maximum(np.abs(r), 1e-300))
+    coef[cols] = c / rms[cols]
+    return np.tile(coef, (n, 1))
+
+
 def basis_rank(basis: np.ndarray, max_rows: int = 1000, seed: int = 0) -> int:
     """Sum over outputs of the numerical rank of each output's regressor block (N, n, p)."""
     rng = np.random.default_rng(seed)
@@ -384,14 +414,21 @@ class MultimodalSEM:
     estep : "ffbs" (default; see benchmarks/bench_estep.py) or "gibbs".
     stay_prob : fixed p(k_t = k_{t-1}); None learns it (Beta prior, mean 0.95).
     max_sweeps, min_sweeps : sweep limits; convergence when, over the last ``patience`` sweeps,
-        the sampled labels change in fewer than ``tol_changed`` of the samples on average and the
-        mean log joint stops rising compared with the ``patience`` sweeps before.
+        the sampled labels change in fewer than ``tol_changed`` of the samples on average and
+        either the mean log joint stops rising compared with the ``patience`` sweeps before or
+        fewer than a fifth of ``tol_changed`` change.
     average_last : sweeps after convergence whose posterior marginals are averaged.
     max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
         (random subset; the others are predicted out of sample): each sweep costs
         O(max_support^2 * T) per joint.
     final_support : the returned GPs (used by predict/export) condition on up to this many.
     fit_points, fit_iter : hyperparameter fitting subset size and L-BFGS iterations.
+    exclusion_s, block_s : leave-window-out radius of the E-step likelihood and the block length
+        of the hyperparameter objective, seconds (need ``t`` in ``fit``).
+    mode_smoothing_s : running-median length of the residuals clustered into initial modes.
+    calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
+    shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
+        payload) instead of one per joint.
     gp_kwargs : passed to ExactGP (e.g. ard, objective, device).
     """
 
@@ -401,7 +438,7 @@ class MultimodalSEM:
                  max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
                  final_support: int = 2000,
                  exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0,
-                 calibrate: bool = True, gp_kwargs: dict | None = None, seed: int = 0,
+                 calibrate: bool = True, shared_basis: bool = False, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
             raise ValueError("n_modes must be >= 1")
@@ -424,6 +461,7 @@ class MultimodalSEM:
         self.block_s = block_s
         self.mode_smoothing_s = mode_smoothing_s
         self.calibrate = calibrate
+        self.shared_basis = shared_basis
         self.gp_kwargs = gp_kwargs or {}
         self.seed = seed
         self.progress = progress
@@ -443,11 +481,14 @@ class MultimodalSEM:
         models what is left; the linear part extrapolates like the physics it encodes."""
         basis = getattr(self, "_basis", None)
         if basis is not None:
-            coef = fit_basis_coefficients(basis[members], Y[members])
+            coef = self._fit_basis(basis[members], Y[members])
             offset = np.einsum("tjp,jp->tj", basis, coef)
             mean, var, gp, support = self._gp_likelihoods(X, Y - offset, members, hyper, optimise, rng)
             return mean + offset, var, gp, support, coef
         return (*self._gp_likelihoods(X, Y, members, hyper, optimise, rng), None)
+
+    def _fit_basis(self, basis, Y):
+        return fit_shared_coefficients(basis, Y) if self.shared_basis else fit_basis_coefficients(basis, Y)
 
     def _gp_likelihoods(self, X, Y, members, hyper, optimise, rng):
         support = members
@@ -560,7 +601,8 @@ class MultimodalSEM:
             if basis.ndim != 3 or basis.shape[:2] != (T, n):
                 raise ValueError(f"basis must be (T, n, p) = ({T}, {n}, p), got {basis.shape}")
             self._basis = basis
-            self.basis_rank_ = basis_rank(basis, seed=self.seed)
+            self.basis_rank_ = (int(np.linalg.matrix_rank(basis[:: max(1, T // 1000)].reshape(-1, basis.shape[2])))
+                                if self.shared_basis else basis_rank(basis, seed=self.seed))
         if t is not None:
             # One increasing time axis over all logs, with gaps wider than any window between them.
             t = np.asarray(t, dtype=np.float64)
@@ -725,7 +767,7 @@ class MultimodalSEM:
             coef = None
             Yk = Y
             if self._basis is not None:
-                coef = fit_basis_coefficients(self._basis[members], Y[members])
+                coef = self._fit_basis(self._basis[members], Y[members])
                 Yk = Y - np.einsum("tjp,jp->tj", self._basis, coef)
             self.coef_.append(coef)
             if len(members) > self.final_support:

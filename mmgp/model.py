@@ -64,12 +64,12 @@ def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
 
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
-    """The mean basis a model uses: "rbd" or None (see TrainConfig.mean_basis)."""
+    """The mean basis a model uses: "payload", "rbd" or None (see TrainConfig.mean_basis)."""
     rbd_ok = robot is not None and semiparametric == "residual"
     if kind == "auto":
-        return "rbd" if rbd_ok else None
-    if kind == "rbd" and not rbd_ok:
-        raise InputError("mean_basis 'rbd' needs a robot model and semiparametric 'residual'")
+        return "payload" if rbd_ok else None
+    if kind in ("rbd", "payload") and not rbd_ok:
+        raise InputError(f"mean_basis '{kind}' needs a robot model and semiparametric 'residual'")
     return None if kind == "none" else kind
 
 
@@ -101,7 +101,11 @@ def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scal
         if semiparametric == "feature":
             X = np.concatenate([X, tau_rbd], axis=1)
     Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
-    basis = robot.regressor(q, dq, ddq) if basis_kind == "rbd" else None
+    basis = None
+    if basis_kind == "rbd":
+        basis = robot.regressor(q, dq, ddq)
+    elif basis_kind == "payload":
+        basis = robot.regressor(q, dq, ddq)[..., -10:]     # the distal body's inertial parameters
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
@@ -263,6 +267,7 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
               fit_points=cfg.fit_points, fit_iter=cfg.fit_iter, exclusion_s=cfg.exclusion_s, seed=cfg.seed,
               progress=progress,
               gp_kwargs={"ard": cfg.ard, "objective": cfg.objective, "device": cfg.device})
+    kw["shared_basis"] = basis_kind == "payload"
     mode_selection = None
     if cfg.modes == "auto":
         sem, mode_selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), t=feats.t, starts=feats.starts,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mmgp.config import load_config
-from mmgp.em import fit_basis_coefficients
+from mmgp.em import fit_basis_coefficients, fit_shared_coefficients
 from mmgp.io import InputError
 from mmgp.model import TrainedModel, resolve_mean_basis, train
 from mmgp.robot import load_robot
@@ -40,29 +40,53 @@ def test_rbd_basis_learns_a_payload_that_extrapolates_exactly():
     np.testing.assert_allclose(pred, payload[test_rows], atol=1e-6 * scale)
 
 
+def test_shared_payload_coefficients_extrapolate_and_match_stacked_least_squares():
+    """A payload loads every joint through the same 10 parameters of the distal body: one shared
+    vector fitted on half of the joint-1 range predicts the other half exactly, and a single
+    IRLS pass is the stacked weighted least squares (rows scaled by each joint's spread)."""
+    robot = load_robot("panda", joint_names=PANDA7)
+    heavy = robot.add_payload("panda_link8", 2.0, [0.01, -0.02, 0.12])
+    rng = np.random.default_rng(1)
+    q, dq, ddq = _states(rng, robot, 500)
+    payload = heavy.rnea(q, dq, ddq) - robot.rnea(q, dq, ddq)
+    basis = robot.regressor(q, dq, ddq)[..., -10:]
+    tr, te = q[:, 0] < 0.0, q[:, 0] >= 0.0
+    coef = fit_shared_coefficients(basis[tr], payload[tr])
+    assert coef.shape == (7, 10) and np.all(coef == coef[0])
+    pred = np.einsum("tjp,jp->tj", basis[te], coef)
+    np.testing.assert_allclose(pred, payload[te], atol=1e-6 * np.abs(payload[te]).max())
+    noisy = payload + rng.normal(scale=0.05, size=payload.shape)
+    one = fit_shared_coefficients(basis, noisy, n_irls=1)[0]
+    s = noisy.std(0)
+    ref, *_ = np.linalg.lstsq((basis / s[None, :, None]).reshape(-1, 10), (noisy / s).ravel(), rcond=None)
+    np.testing.assert_allclose(basis.reshape(-1, 10) @ one, basis.reshape(-1, 10) @ ref, atol=1e-8)
+
+
 def test_mean_basis_resolution():
     robot = object()
-    assert resolve_mean_basis("auto", robot, "residual") == "rbd"
+    assert resolve_mean_basis("auto", robot, "residual") == "payload"
+    assert resolve_mean_basis("rbd", robot, "residual") == "rbd"
     assert resolve_mean_basis("auto", None, "residual") is None
     assert resolve_mean_basis("auto", robot, "feature") is None
     assert resolve_mean_basis("none", robot, "residual") is None
+    assert resolve_mean_basis("payload", robot, "residual") == "payload"
     with pytest.raises(InputError, match="rbd"):
         resolve_mean_basis("rbd", None, "residual")
     with pytest.raises(InputError, match="mean_basis"):
         load_config(mean_basis="linear")
 
 
-def test_trained_rbd_model_round_trips_through_disk(tmp_path):
+def test_trained_payload_model_round_trips_through_disk(tmp_path):
     rec = panda_modes(seed=3, n_samples=400)
     log = tmp_path / "panda.parquet"
     rec.write(log)
     robot = load_robot(log_path=log)
     cfg = load_config(max_sweeps=3, min_sweeps=2, average_last=1, fit_iter=8, fit_points=150, max_support=200)
     res = train([log], cfg, robot=robot)
-    assert res.report["mean_basis"]["kind"] == "rbd" and res.report["mean_basis"]["rank"] > 7
+    assert res.report["mean_basis"]["kind"] == "payload" and 7 <= res.report["mean_basis"]["rank"] <= 10
     res.model.save(tmp_path)
     back = TrainedModel.load(tmp_path)
-    assert back.basis_kind_ == "rbd"
+    assert back.basis_kind_ == "payload"
     np.testing.assert_array_equal(back.basis_coef_[0], res.model.basis_coef_[0])
     rows = slice(20, 90)   # after the start transient, before the first push (t >= 1 s)
     q, dq, ddq = rec.q[rows], rec.info["dq_true"][rows], rec.info["ddq_true"][rows]
