@@ -567,7 +567,11 @@ class MultimodalSEM:
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
-        ``trace_`` (list of SweepRecord), ``converged_``, ``n_sweeps_``, ``timings_``.
+        ``trace_`` (list of SweepRecord), ``converged_``, ``n_sweeps_``, ``timings_``,
+        ``coef_`` (K basis coefficient arrays (n, p), or None each), ``basis_rank_``, and
+        ``last_sweep_`` (the last sweep's per-mode means/variances (T, n), log-likelihoods (T, S),
+        calibration, sigma_d and states: for diagnosing where errors sit). Mode order in
+        ``last_sweep_`` is the sweep's internal one, not the final nominal-first order.
         """
         import torch
 
