@@ -41,22 +41,8 @@ np.set_printoptions(precision=3, suppress=True, linewidth=160)
 
 def exciting_reference(rng, lower, upper, period=12.0, n_harm=5, max_speed=1.0, fill=0.35):
     """Periodic Fourier-series exciting trajectory (base period ``period`` s) inside the limits."""
-    centre = 0.5 * (lower + upper)
-    amp = np.minimum(fill * (upper - lower), 1.2)
-    n = lower.size
-    k = np.arange(1, n_harm + 1)
-    w = 2 * np.pi * k / period
-    a = rng.uniform(0.3, 1.0, (n, n_harm)) / np.sqrt(k)
-    a *= (amp / a.sum(1))[:, None]
-    a *= np.minimum(1.0, max_speed / (a * w).sum(1))[:, None]
-    ph = rng.uniform(0, 2 * np.pi, (n, n_harm))
-
-    def ref(t):
-        arg = w * t + ph
-        return (centre + (a * np.sin(arg)).sum(1), (a * w * np.cos(arg)).sum(1),
-                -(a * w * w * np.sin(arg)).sum(1))
-
-    return ref
+    return sim.fourier_reference(rng, lower, upper, period, n_harm=n_harm, fill=fill, max_amp=1.2,
+                                 max_speed=max_speed, decay=0.5)
 
 
 def record_payload(mass, com, *, seed=0, duration=36.0, rate_hz=100.0, link="panda_link8"):

@@ -375,10 +375,13 @@ def fit_shared_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 5
     return np.tile(coef, (n, 1))
 
 
-def basis_rank(basis: np.ndarray, max_rows: int = 1000, seed: int = 0) -> int:
-    """Sum over outputs of the numerical rank of each output's regressor block (N, n, p)."""
+def basis_rank(basis: np.ndarray, max_rows: int = 1000, seed: int = 0, shared: bool = False) -> int:
+    """Number of identifiable basis coefficients (N, n, p): the sum over outputs of each output's
+    regressor rank, or with ``shared`` coefficients the rank of the stacked (N * n, p) rows."""
     rng = np.random.default_rng(seed)
     rows = basis if len(basis) <= max_rows else basis[rng.choice(len(basis), max_rows, replace=False)]
+    if shared:
+        return int(np.linalg.matrix_rank(rows.reshape(-1, basis.shape[2])))
     total = 0
     for j in range(basis.shape[1]):
         Aj = rows[:, j, :]
@@ -605,8 +608,7 @@ class MultimodalSEM:
             if basis.ndim != 3 or basis.shape[:2] != (T, n):
                 raise ValueError(f"basis must be (T, n, p) = ({T}, {n}, p), got {basis.shape}")
             self._basis = basis
-            self.basis_rank_ = (int(np.linalg.matrix_rank(basis[:: max(1, T // 1000)].reshape(-1, basis.shape[2])))
-                                if self.shared_basis else basis_rank(basis, seed=self.seed))
+            self.basis_rank_ = basis_rank(basis, seed=self.seed, shared=self.shared_basis)
         if t is not None:
             # One increasing time axis over all logs, with gaps wider than any window between them.
             t = np.asarray(t, dtype=np.float64)

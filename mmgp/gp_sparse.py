@@ -72,16 +72,11 @@ class SparseGP:
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
                  coarse_fit_points: int = 300, n_inducing: int = 1000, method: str = "sgpr",
                  n_subset: int = 3000):
+        # The exact GP's settings mean the same here (its hyperparameter procedure is shared).
+        ExactGP.__init__(self, ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
+                         noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points)
         self.method = method
         self.n_subset = n_subset
-        self.ard = ard
-        self.objective = objective
-        self.max_fit_points = max_fit_points
-        self.max_iter = max_iter
-        self.noise_floor = noise_floor
-        self.device = device
-        self.seed = seed
-        self.coarse_fit_points = coarse_fit_points
         self.n_inducing = n_inducing
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "SparseGP":

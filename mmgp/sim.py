@@ -631,20 +631,12 @@ PANDA = {
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 
 
-def _sinusoid_reference(rng, lower, upper, *, n_harm: int = 4, f_range=(0.04, 0.25), max_speed=0.8,
-                        fill=0.7):
-    """Sum of sinusoids per joint, centred in the limits, with peak |q - centre| <= fill * half-range
-    (capped at 1.2 rad) and peak speed <= max_speed. Returns ``reference(t)``."""
-    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
-    n = lower.size
-    centre = 0.5 * (lower + upper)
-    amp_max = np.minimum(fill * 0.5 * (upper - lower), 1.2)
-    w = 2 * np.pi * rng.uniform(*f_range, size=(n, n_harm))
-    a = rng.uniform(0.3, 1.0, size=(n, n_harm))
-    ph = rng.uniform(0, 2 * np.pi, size=(n, n_harm))
-    a *= (amp_max / a.sum(axis=1))[:, None]
-    speed = (a * w).sum(axis=1)
-    a *= np.minimum(1.0, max_speed / speed)[:, None]
+def _sines_reference(centre, a, w, ph, amp, max_speed):
+    """``reference(t)`` -> (q, dq, ddq) of per-joint sums of sines a sin(w t + ph) around
+    ``centre``, the weights ``a`` (n, h) rescaled to peak |q - centre| = ``amp`` (n,) and then
+    shrunk where the peak speed would exceed ``max_speed``."""
+    a = a * (amp / a.sum(axis=1))[:, None]
+    a = a * np.minimum(1.0, max_speed / (a * w).sum(axis=1))[:, None]
 
     def reference(t):
         arg = w * t + ph
@@ -652,6 +644,34 @@ def _sinusoid_reference(rng, lower, upper, *, n_harm: int = 4, f_range=(0.04, 0.
                 -(a * w * w * np.sin(arg)).sum(1))
 
     return reference
+
+
+def _sinusoid_reference(rng, lower, upper, *, n_harm: int = 4, f_range=(0.04, 0.25), max_speed=0.8,
+                        fill=0.7):
+    """Sum of sinusoids per joint, centred in the limits, with peak |q - centre| <= fill * half-range
+    (capped at 1.2 rad) and peak speed <= max_speed. Returns ``reference(t)``."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    n = lower.size
+    w = 2 * np.pi * rng.uniform(*f_range, size=(n, n_harm))
+    a = rng.uniform(0.3, 1.0, size=(n, n_harm))
+    ph = rng.uniform(0, 2 * np.pi, size=(n, n_harm))
+    return _sines_reference(0.5 * (lower + upper), a, w, ph, np.minimum(fill * 0.5 * (upper - lower), 1.2),
+                            max_speed)
+
+
+def fourier_reference(rng, lower, upper, period: float, *, n_harm: int = 3, fill: float = 0.3,
+                      max_amp: float = 0.9, max_speed: float = 0.7, decay: float = 1.0):
+    """Periodic exciting trajectory (base period ``period`` s, repeats exactly): harmonics
+    k = 1..n_harm per joint with weights U(0.3, 1) / k^decay and random phases, centred in the
+    limits, peak |q - centre| = min(fill * range, max_amp), peak speed <= max_speed.
+    Returns ``reference(t)`` -> (q, dq, ddq)."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    n = lower.size
+    k = np.arange(1, n_harm + 1)
+    w = 2 * np.pi * k / period
+    a = rng.uniform(0.3, 1.0, (n, n_harm)) / k ** decay
+    ph = rng.uniform(0, 2 * np.pi, (n, n_harm))
+    return _sines_reference(0.5 * (lower + upper), a, w, ph, np.minimum(fill * (upper - lower), max_amp), max_speed)
 
 
 def panda_modes(seed: int = 0, n_samples: int = 5000, rate_hz: float = 100.0, payloads=(0.0, 2.0),

@@ -85,26 +85,6 @@ def test_default_gap_covers_the_derivative_window():
 # ---- MuJoCo Panda with a concealed payload and friction ----------------------------------------
 
 
-def _periodic_reference(rng, lower, upper, period, n_harm=3, max_speed=0.7):
-    """Fourier-series exciting trajectory with base period ``period`` s (repeats exactly)."""
-    centre = 0.5 * (lower + upper)
-    amp = np.minimum(0.3 * (upper - lower), 0.9)
-    n = lower.size
-    k = np.arange(1, n_harm + 1)
-    w = 2 * np.pi * k / period
-    a = rng.uniform(0.3, 1.0, (n, n_harm)) / k
-    a *= (amp / a.sum(1))[:, None]
-    a *= np.minimum(1.0, max_speed / (a * w).sum(1))[:, None]
-    ph = rng.uniform(0, 2 * np.pi, (n, n_harm))
-
-    def ref(t):
-        arg = w * t + ph
-        return (centre + (a * np.sin(arg)).sum(1), (a * w * np.cos(arg)).sum(1),
-                -(a * w * w * np.sin(arg)).sum(1))
-
-    return ref
-
-
 @pytest.fixture(scope="module")
 def panda_log():
     urdf = sim.panda_urdf_path()
@@ -113,8 +93,8 @@ def panda_log():
                           payload={"link": "panda_link8", "mass": 2.0, "com": [0.0, 0.03, 0.1]})
     nominal = sim.load_model(urdf, PANDA7)
     pm = sim.reduced_pinocchio_model(urdf, PANDA7)
-    ref = _periodic_reference(np.random.default_rng(5), np.asarray(pm.lowerPositionLimit),
-                              np.asarray(pm.upperPositionLimit), period=10.0)
+    ref = sim.fourier_reference(np.random.default_rng(5), np.asarray(pm.lowerPositionLimit),
+                                np.asarray(pm.upperPositionLimit), period=10.0)
     P = sim.PANDA
     # Three periods: each of three time blocks is one period, so training covers its states.
     rec = sim.simulate(real, ref, 30.0, rate_hz=50.0, kp=P["kp"], kd=P["kd"], controller_model=nominal,
