@@ -266,8 +266,8 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
               final_support=cfg.final_support,
               fit_points=cfg.fit_points, fit_iter=cfg.fit_iter, exclusion_s=cfg.exclusion_s, seed=cfg.seed,
               progress=progress,
+              shared_basis=basis_kind == "payload",
               gp_kwargs={"ard": cfg.ard, "objective": cfg.objective, "device": cfg.device})
-    kw["shared_basis"] = basis_kind == "payload"
     mode_selection = None
     if cfg.modes == "auto":
         sem, mode_selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), t=feats.t, starts=feats.starts,
