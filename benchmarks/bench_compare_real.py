@@ -25,10 +25,10 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "datasets"))
 
 import convert_real as cr  # noqa: E402
-from mmgp.compare import compare, format_compare, write_compare  # noqa: E402
-from mmgp.io import read_log  # noqa: E402
-from mmgp.robot import load_robot  # noqa: E402
-from mmgp.signals import complete_derivatives  # noqa: E402
+from mmgp.evaluation.compare import compare, format_compare, write_compare
+from mmgp.data.logs import read_log
+from mmgp.physics.robot import load_robot
+from mmgp.data.differentiation import complete_derivatives
 
 
 def main(argv=None) -> int:

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from mmgp.compensator import IndependentJointGPs, check_passivity, compensator_from_model
+from mmgp.compensator.field import IndependentJointGPs, check_passivity, compensator_from_model
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 HOME = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
@@ -52,7 +52,7 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    from mmgp.robot import RobotModel
+    from mmgp.physics.robot import RobotModel
 
     robot = RobotModel.from_name("panda", PANDA_JOINTS)
     lim_lo, lim_hi = robot.pin_model.lowerPositionLimit.copy(), robot.pin_model.upperPositionLimit.copy()

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mmgp.compensator import Compensator, compensator_from_model, load_compensator
+from mmgp.compensator.field import Compensator, compensator_from_model, load_compensator
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 
@@ -98,7 +98,7 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    from mmgp.robot import RobotModel
+    from mmgp.physics.robot import RobotModel
 
     robot = RobotModel.from_name("panda", PANDA_JOINTS)
     model = _PandaGravity(robot, args.support, seed=args.seed)

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mmgp import concealed as C
-from mmgp.diagnose import diagnose
-from mmgp.io import RobotLog
+from mmgp.sim import concealed as C
+from mmgp.diagnosis.pipeline import diagnose
+from mmgp.data.logs import RobotLog
 
 MAGNITUDES = {"tau_c", "b", "inertia", "k", "offset", "mass", "beta"}
 
@@ -144,13 +144,13 @@ def real_panda(root="/work/shared/datasets/panda_gaz2019"):
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "datasets"))
     from convert_real import convert_panda_gaz2019
-    from mmgp.io import read_log
+    from mmgp.data.logs import read_log
 
     with tempfile.TemporaryDirectory() as tmp:
         # the project's converter (ddq left out: diagnose estimates it from dq)
         path = convert_panda_gaz2019(Path(tmp))[0]
         log = read_log(path)
-    from mmgp.robot import RobotModel
+    from mmgp.physics.robot import RobotModel
 
     robot = RobotModel.from_name("panda", [f"panda_joint{i}" for i in range(1, 8)])
     t0 = time.perf_counter()

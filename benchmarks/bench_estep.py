@@ -18,11 +18,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mmgp.config import load_config  # noqa: E402
-from mmgp.evaluate import classification_figures  # noqa: E402
-from mmgp.io import read_labels  # noqa: E402
-from mmgp.model import labels_frame, train  # noqa: E402
-from mmgp.sim import actuator_replica  # noqa: E402
+from mmgp.config import load_config
+from mmgp.evaluation.metrics import classification_figures
+from mmgp.data.logs import read_labels
+from mmgp.models.trained import labels_frame, train
+from mmgp.sim.recording import actuator_replica
 
 
 def main() -> int:

@@ -67,7 +67,7 @@ def run_one(which: str, train: str) -> dict:
     if which == "ours":
         import torch
 
-        from mmgp.gp import ExactGP
+        from mmgp.gp.exact import ExactGP
 
         gp = ExactGP(objective="loo").fit(X, Y)
         fit_wall, fit_cpu = time.perf_counter() - t0, time.process_time() - c0

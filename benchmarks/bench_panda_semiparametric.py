@@ -26,7 +26,7 @@ ROOT = "/work/shared/datasets/panda_gaz2019/rbt_log"
 
 
 def load(rate: float):
-    from mmgp.signals import SavitzkyGolay
+    from mmgp.data.differentiation import SavitzkyGolay
 
     read = lambda k: np.loadtxt(os.path.join(ROOT, f"exciting_traj_{k}.txt"))  # noqa: E731
     t = read("time")
@@ -44,9 +44,9 @@ def main():
     ap.add_argument("--folds", type=int, default=5)
     a = ap.parse_args()
 
-    from mmgp.gp_sparse import make_gp
-    from mmgp.robot import RobotModel
-    from mmgp.signals import time_block_folds
+    from mmgp.gp.sparse import make_gp
+    from mmgp.physics.robot import RobotModel
+    from mmgp.data.folds import time_block_folds
 
     t, q, dq, ddq, tau = load(a.rate)
     robot = RobotModel.from_name("panda", n_joints=7)  # the log has no finger joints

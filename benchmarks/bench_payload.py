@@ -30,10 +30,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mmgp import sim  # noqa: E402
-from mmgp.io import RobotLog, read_log  # noqa: E402
-from mmgp.robot import fit_payload, load_robot, point_mass_parameters  # noqa: E402
-from mmgp.signals import SavitzkyGolay, complete_derivatives  # noqa: E402
+from mmgp.sim import recording as sim
+from mmgp.data.logs import RobotLog, read_log
+from mmgp.physics.robot import fit_payload, load_robot, point_mass_parameters
+from mmgp.data.differentiation import SavitzkyGolay, complete_derivatives
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 np.set_printoptions(precision=3, suppress=True, linewidth=160)
@@ -145,7 +145,7 @@ def part_modes(run_em: bool = True) -> None:
     if not run_em:
         return
     from mmgp.config import TrainConfig
-    from mmgp.model import train
+    from mmgp.models.trained import train
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "modes.parquet"

@@ -55,8 +55,8 @@ def run(name: str, sk_points: int, seed: int = 0) -> None:
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
     from sklearn.linear_model import LinearRegression
 
-    from mmgp.gp import ExactGP
-    from mmgp.gp_sparse import SparseGP, make_gp
+    from mmgp.gp.exact import ExactGP
+    from mmgp.gp.sparse import SparseGP, make_gp
 
     d = loadmat(os.path.join(ROOT, FILES[name]))
     X, Y, Xt, Yt = d["X_train"], d["Y_train"], d["X_test"], d["Y_test"]

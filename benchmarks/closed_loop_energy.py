@@ -55,13 +55,12 @@ from pathlib import Path
 import numpy as np
 
 import mmgp
-from mmgp.compensator import compensator_from_model, load_compensator
+from mmgp.compensator.field import compensator_from_model, load_compensator
 from mmgp.config import load_config
-from mmgp.model import train
-from mmgp.robot import load_robot
-from mmgp.sim import (PANDA, PANDA_JOINTS, REPLICA, Push, actuator_replica, build_mjcf, panda_urdf_path,
-                      replica_mjcf)
-from mmgp.sim import simulate as record
+from mmgp.models.trained import train
+from mmgp.physics.robot import load_robot
+from mmgp.sim.recording import PANDA, PANDA_JOINTS, REPLICA, Push, actuator_replica, build_mjcf, panda_urdf_path, replica_mjcf
+from mmgp.sim.recording import simulate as record
 
 HOME = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
 G = 9.81
@@ -283,7 +282,7 @@ def run_plant(name, args, out_dir):
         model = _enable_energy(mj.MjModel.from_xml_string(
             build_mjcf(urdf, PANDA_JOINTS, damping=0.3, payload=payload)))
         nofric = mj.MjModel.from_xml_string(build_mjcf(urdf, PANDA_JOINTS, payload=payload))
-        from mmgp.robot import RobotModel
+        from mmgp.physics.robot import RobotModel
 
         robot = RobotModel.from_name("panda", PANDA_JOINTS)
         lim_lo, lim_hi = robot.pin_model.lowerPositionLimit.copy(), robot.pin_model.upperPositionLimit.copy()

@@ -51,7 +51,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO))
 
-from mmgp.io import write_table  # noqa: E402
+from mmgp.data.outputs import write_table
 
 # Converter name -> folder of the shared datasets it needs.
 FOLDERS = {

@@ -4,6 +4,6 @@ __version__ = "0.1.0"
 
 def load_compensator(path):
     """Load an exported position-only feedforward compensator (numpy only). See mmgp.compensator."""
-    from .compensator import load_compensator as _load
+    from .compensator.field import load_compensator as _load
 
     return _load(path)

@@ -14,7 +14,7 @@ from typing import List, Optional
 import typer
 
 from . import __version__
-from .io import InputError
+from .errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multimodal GP inverse dynamics from messy robot logs.")
@@ -28,7 +28,7 @@ def _fail(exc: Exception) -> None:
 
 
 def _check_device(device: Optional[str]) -> None:
-    from .gp import resolve_device
+    from .gp.linalg import resolve_device
 
     if device is None:
         return
@@ -39,7 +39,7 @@ def _check_device(device: Optional[str]) -> None:
 
 
 def _robot_for(log_path, robot: Optional[str], urdf: Optional[Path], n_joints: Optional[int] = None):
-    from .robot import load_robot
+    from .physics.robot import load_robot
 
     return load_robot(robot=robot, urdf=urdf, log_path=log_path, n_joints=n_joints)
 
@@ -56,9 +56,9 @@ def _progress_printer(quiet: bool):
 
 
 def _write_training_outputs(out: Path, result) -> None:
-    from .io import write_table
-    from .model import labels_frame
-    from .report import plot_labels, plot_trace
+    from .data.outputs import write_table
+    from .models.trained import labels_frame
+    from .evaluation.plots import plot_labels, plot_trace
 
     import numpy as np
 
@@ -88,8 +88,8 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
           quiet: bool = typer.Option(False, "--quiet", help="No per-sweep progress.")):
     """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots."""
     from .config import load_config
-    from .io import atomic_output_dir
-    from .model import train as run_train
+    from .data.outputs import atomic_output_dir
+    from .models.trained import train as run_train
 
     try:
         _check_device(device)
@@ -117,9 +117,10 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
     """Predicted torque and its standard deviation per joint for a log."""
     import pandas as pd
 
-    from .io import read_log, write_table
-    from .model import TrainedModel
-    from .signals import SavitzkyGolay, complete_derivatives
+    from .data.logs import read_log
+    from .data.outputs import write_table
+    from .models.trained import TrainedModel
+    from .data.differentiation import SavitzkyGolay, complete_derivatives
 
     try:
         model = TrainedModel.load(model_dir)
@@ -146,8 +147,9 @@ def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp
     """Classification figures against ground truth; writes DIR/evaluation.json."""
     import pandas as pd
 
-    from .evaluate import classification_figures, format_figures
-    from .io import atomic_write_bytes, read_labels
+    from .evaluation.metrics import classification_figures, format_figures
+    from .data.outputs import atomic_write_bytes
+    from .data.logs import read_labels
 
     try:
         lab_path = model_dir / "labels.parquet"
@@ -177,9 +179,10 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
     """Train and evaluate on the shipped 1-DOF replica of the source experiment (MuJoCo,
     0.73 kg load, Bowden-cable-like friction, pushes, 20 Hz) and print our figures beside the source's."""
     from .config import load_config
-    from .evaluate import classification_figures, format_figures
-    from .io import atomic_output_dir, atomic_write_bytes, read_labels
-    from .model import labels_frame, train as run_train
+    from .evaluation.metrics import classification_figures, format_figures
+    from .data.outputs import atomic_output_dir, atomic_write_bytes
+    from .data.logs import read_labels
+    from .models.trained import labels_frame, train as run_train
 
     marker = ".mmgp-demo"
     if out.exists() and (out / marker).exists():
@@ -188,7 +191,7 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
         with atomic_output_dir(out, force=force) as tmp:
             data = _demo_data()
             if data is None:
-                from .sim import actuator_replica
+                from .sim.recording import actuator_replica
 
                 typer.echo("shipped replica not found next to the package; regenerating it (seed 0)", err=True)
                 rec = actuator_replica(seed=0)
@@ -218,8 +221,8 @@ def export(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp t
            max_support: int = typer.Option(1000, "--max-support"),
            force: bool = typer.Option(False, "--force")):
     """Export the position-only passive feedforward tau_ff(q) = grad V(q) with its storage function."""
-    from .compensator import check_passivity, compensator_from_model
-    from .model import TrainedModel
+    from .compensator.field import check_passivity, compensator_from_model
+    from .models.trained import TrainedModel
 
     try:
         if out.exists() and not force:
@@ -242,7 +245,7 @@ def check_passivity_cmd(file: Path = typer.Argument(..., help="Compensator file 
                         n_loops: int = typer.Option(50, "--loops"),
                         seed: int = typer.Option(0, "--seed")):
     """Numerically confirm grad S = tau_ff, zero work around closed loops, S bounded below."""
-    from .compensator import check_passivity, load_compensator
+    from .compensator.field import check_passivity, load_compensator
 
     try:
         comp = load_compensator(file)
@@ -263,9 +266,10 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
              urdf: Optional[Path] = typer.Option(None, "--urdf"),
              force: bool = typer.Option(False, "--force")):
     """Locate the sim-vs-real mismatch, name the missing physics, fit it, show the held-out gain."""
-    from .diagnose import diagnose as run_diagnose
-    from .io import atomic_output_dir, read_log
-    from .signals import complete_derivatives
+    from .diagnosis.pipeline import diagnose as run_diagnose
+    from .data.outputs import atomic_output_dir
+    from .data.logs import read_log
+    from .data.differentiation import complete_derivatives
 
     try:
         robot_model = _robot_for(log, robot, urdf)
@@ -291,9 +295,10 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
             device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, auto."),
             force: bool = typer.Option(False, "--force")):
     """Held-out (time-block) normalised MSE per joint: rigid body only, GP only, rigid body + GP."""
-    from .compare import compare as run_compare, format_compare, write_compare
-    from .io import atomic_output_dir, read_log
-    from .signals import complete_derivatives
+    from .evaluation.compare import compare as run_compare, format_compare, write_compare
+    from .data.outputs import atomic_output_dir
+    from .data.logs import read_log
+    from .data.differentiation import complete_derivatives
 
     try:
         _check_device(device)

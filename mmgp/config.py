@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from .io import InputError
+from .errors import InputError
 
 
 @dataclass

@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mmgp.cli import app
-from mmgp.evaluate import classification_figures
-from mmgp.io import read_labels
+from mmgp.evaluation.metrics import classification_figures
+from mmgp.data.logs import read_labels
 
 ROOT = Path(__file__).resolve().parents[1]
 LOG = ROOT / "datasets/replica/replica_log.parquet"

@@ -11,9 +11,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from mmgp import concealed as C
+from mmgp.sim import concealed as C
 from mmgp.cli import app
-from mmgp.io import write_log
+from mmgp.data.logs import write_log
 
 runner = CliRunner()
 

@@ -6,12 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from mmgp import sim
-from mmgp.compare import compare, default_gap, format_compare, write_compare
-from mmgp.evaluate import normalised_mse
-from mmgp.io import RobotLog
-from mmgp.robot import load_robot
-from mmgp.signals import complete_derivatives, time_block_folds
+from mmgp.sim import recording as sim
+from mmgp.evaluation.compare import compare, default_gap, format_compare, write_compare
+from mmgp.evaluation.metrics import normalised_mse
+from mmgp.data.logs import RobotLog
+from mmgp.physics.robot import load_robot
+from mmgp.data.differentiation import complete_derivatives
+from mmgp.data.folds import time_block_folds
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 

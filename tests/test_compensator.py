@@ -16,15 +16,7 @@ import sys
 import numpy as np
 import pytest
 
-from mmgp.compensator import (
-    Compensator,
-    CurlFreeGP,
-    IndependentJointGPs,
-    check_passivity,
-    compensator_from_model,
-    curl_free_kernel_np,
-    load_compensator,
-)
+from mmgp.compensator.field import Compensator, CurlFreeGP, IndependentJointGPs, check_passivity, compensator_from_model, curl_free_kernel_np, load_compensator
 
 
 class TwoLinkGravity:
@@ -164,7 +156,7 @@ def _autograd_blocks(X1, X2, l, s2):
 def test_curl_free_kernel_matches_autograd():
     import torch
 
-    from mmgp.compensator import _curl_free_kernel_torch
+    from mmgp.compensator.field import _curl_free_kernel_torch
 
     rng = np.random.default_rng(3)
     X1, X2 = rng.normal(size=(5, 3)), rng.normal(size=(4, 3))

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmgp.io import read_log
-from mmgp.robot import load_robot
+from mmgp.data.logs import read_log
+from mmgp.physics.robot import load_robot
 
 _spec = importlib.util.spec_from_file_location(
     "convert_real", Path(__file__).resolve().parents[1] / "datasets" / "convert_real.py")

@@ -4,10 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from mmgp import concealed as C
-from mmgp import effects as fx
-from mmgp.diagnose import FoldGrams, ForwardCVSelector, _hmm_filter, diagnose, valid_mask
-from mmgp.signals import time_block_folds
+from mmgp.sim import concealed as C
+from mmgp.physics import effects as fx
+from mmgp.diagnosis.pipeline import FoldGrams, ForwardCVSelector, _hmm_filter, diagnose, valid_mask
+from mmgp.data.folds import time_block_folds
 
 
 def _synthetic_ctx(T=3000, n=3, seed=0):
@@ -212,7 +212,7 @@ def test_gate_and_union_of_scan_and_learner_flags():
     """_combine against its definition, span by span: a scanned span survives the gate iff its
     peak is strong or the learner flags at least one of its samples; the union flags a sample iff
     either does."""
-    from mmgp.diagnose import _combine, _runs
+    from mmgp.diagnosis.pipeline import _combine, _runs
 
     rng = np.random.default_rng(5)
     for _ in range(20):

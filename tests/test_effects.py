@@ -3,8 +3,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from mmgp import effects as fx
-from mmgp.sim import panda_urdf_path, reduced_pinocchio_model, PANDA_JOINTS
+from mmgp.physics import effects as fx
+from mmgp.sim.recording import panda_urdf_path, reduced_pinocchio_model, PANDA_JOINTS
 
 
 @pytest.fixture(scope="module")

@@ -15,11 +15,16 @@ import torch
 from scipy.stats import multivariate_normal, norm
 from sklearn.metrics import adjusted_rand_score
 
-import mmgp.gp as gp_module
-from mmgp.em import (MultimodalSEM, _blocks, basis_rank, block_loo_log_predictive, ffbs_sample,
-                     fit_basis_coefficients, forward_backward, gibbs_conditionals, gibbs_sweep,
-                     sequence_log_prior, transition_matrix, windowed_predictive)
-from mmgp.gp import DTYPE, ExactGP, Hyper, log_marginal_likelihood
+import mmgp.gp.exact as gp_module
+from mmgp.models.sem import MultimodalSEM
+from mmgp.data.folds import _blocks
+from mmgp.models.robust import basis_rank, fit_basis_coefficients
+from mmgp.gp.windowed import block_loo_log_predictive, windowed_predictive
+from mmgp.models.hmm import ffbs_sample, forward_backward, gibbs_conditionals, gibbs_sweep, sequence_log_prior, transition_matrix
+from mmgp.gp.linalg import DTYPE
+from mmgp.gp.exact import ExactGP
+from mmgp.gp.hyper import Hyper
+from mmgp.gp.objectives import log_marginal_likelihood
 
 
 # ---------------------------------------------------------------------------------------------

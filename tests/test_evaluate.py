@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from sklearn.metrics import adjusted_rand_score
 
-from mmgp.evaluate import SOURCE_FIGURES, classification_figures, format_figures, normalised_mse
+from mmgp.evaluation.metrics import SOURCE_FIGURES, classification_figures, format_figures, normalised_mse
 
 
 def frames(d_true, d_pred, m_true=None, m_pred=None):

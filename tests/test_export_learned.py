@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import mmgp
-from mmgp.compensator import check_passivity, compensator_from_model
+from mmgp.compensator.field import check_passivity, compensator_from_model
 from mmgp.config import load_config
-from mmgp.model import train
+from mmgp.models.trained import train
 
 REPLICA_LOG = Path(__file__).resolve().parents[1] / "datasets" / "replica" / "replica_log.parquet"
 
@@ -88,7 +88,7 @@ def _arm_gravity(q):
 def test_two_joint_learned_export_is_passive(tmp_path):
     import mujoco
 
-    from mmgp.sim import simulate
+    from mmgp.sim.recording import simulate
 
     model = mujoco.MjModel.from_xml_string(_arm_xml())
     w, a, c = 2 * np.pi / np.array([13.0, 7.0]), np.array([0.9, 1.0]), np.array([0.3, -0.4])

@@ -10,9 +10,11 @@ import torch
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
-from mmgp.gp import (DTYPE, ExactGP, GPNumericalError, Hyper, _value_and_grad, default_hyper,
-                     log_marginal_likelihood, loo_log_predictive, optimise_hyper, rbf_kernel,
-                     robust_cholesky)
+from mmgp.gp.linalg import DTYPE, GPNumericalError, robust_cholesky
+from mmgp.gp.exact import ExactGP
+from mmgp.gp.hyper import Hyper, default_hyper, optimise_hyper
+from mmgp.gp.objectives import _value_and_grad, log_marginal_likelihood, loo_log_predictive
+from mmgp.gp.kernels import rbf_kernel
 
 
 def toy(N=40, d=2, m=2, seed=0, noise=0.1):
@@ -177,7 +179,7 @@ def test_batched_outputs_equal_single_output_fits():
 
 
 # ---------------------------------------------------------------- scalable GP (mmgp.gp_sparse)
-from mmgp.gp_sparse import SparseGP, make_gp  # noqa: E402
+from mmgp.gp.sparse import SparseGP, make_gp
 
 
 def test_sparse_gp_with_all_inputs_inducing_equals_exact_gp():

@@ -17,7 +17,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from mmgp.io import InputError, atomic_output_dir, atomic_write_bytes, read_labels, read_log, write_log, write_table
+from mmgp.errors import InputError
+from mmgp.data.outputs import atomic_output_dir, atomic_write_bytes, write_table
+from mmgp.data.logs import read_labels, read_log, write_log
 
 
 def good_frame(T=30, n=3, dq=False, ddq=False, seed=0):

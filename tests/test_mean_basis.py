@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from mmgp.config import load_config
-from mmgp.em import fit_basis_coefficients, fit_shared_coefficients
-from mmgp.io import InputError
-from mmgp.model import TrainedModel, resolve_mean_basis, train
-from mmgp.robot import load_robot
-from mmgp.sim import panda_modes
+from mmgp.models.robust import fit_basis_coefficients, fit_shared_coefficients
+from mmgp.errors import InputError
+from mmgp.models.trained import TrainedModel, train
+from mmgp.models.features import resolve_mean_basis
+from mmgp.physics.robot import load_robot
+from mmgp.sim.recording import panda_modes
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 

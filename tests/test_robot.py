@@ -5,9 +5,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from mmgp.io import InputError, read_log, write_log
-from mmgp.robot import (RobotModel, _transport_matrix, available_robots, fit_payload, load_robot,
-                        robot_urdf_path)
+from mmgp.errors import InputError
+from mmgp.data.logs import read_log, write_log
+from mmgp.physics.robot import RobotModel, _transport_matrix, available_robots, fit_payload, load_robot, robot_urdf_path
 
 PANDA_ARM = [f"panda_joint{i}" for i in range(1, 8)]
 

@@ -15,8 +15,9 @@ import pytest
 from scipy.interpolate import make_smoothing_spline
 from scipy.signal import savgol_filter
 
-from mmgp.io import RobotLog
-from mmgp.signals import SavitzkyGolay, complete_derivatives, downsample, loo_window, time_block_folds
+from mmgp.data.logs import RobotLog
+from mmgp.data.differentiation import SavitzkyGolay, complete_derivatives, downsample, loo_window
+from mmgp.data.folds import time_block_folds
 
 STEP = 2 * math.pi / 2 ** 14      # encoder quantum, rad
 SIGMA = 1e-4                      # additive sensor noise, rad

@@ -6,8 +6,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from mmgp import sim
-from mmgp.io import read_labels, read_log
+from mmgp.sim import recording as sim
+from mmgp.data.logs import read_labels, read_log
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 

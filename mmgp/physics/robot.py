@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
-from .io import InputError
+from ..errors import InputError
 
 __all__ = [
     "ROBOT_FILES",

@@ -48,8 +48,9 @@ from typing import Sequence
 
 import numpy as np
 
-from . import effects as fx
-from .io import RobotLog, jsonable
+from ..physics import effects as fx
+from ..data.logs import RobotLog
+from ..data.outputs import jsonable
 
 STAGES = ("nominal", "with_physics", "with_physics_and_gp")
 
@@ -455,7 +456,7 @@ def _joint_weights(e: np.ndarray, M: np.ndarray) -> np.ndarray:
 
 
 def _folds(T: int, K: int, t: np.ndarray, f_c: float | None):
-    from .signals import time_block_folds
+    from ..data.folds import time_block_folds
 
     # gap: the filter's memory (about 2 periods of the cutoff) plus the differentiator window
     gap_s = 0.05 + (2.0 / f_c if f_c else 0.0)
@@ -687,8 +688,8 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     "mode": (T,) int mode labels (nearest subsample), "sigma_d": (n,), "n_points", "seconds",
     "n_sweeps"}. ``sem_kw`` overrides MultimodalSEM settings.
     """
-    from .em import MultimodalSEM
-    from .model import friction_velocity_scale
+    from ..models.sem import MultimodalSEM
+    from ..models.features import friction_velocity_scale
 
     T, n = resid.shape
     idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
@@ -831,7 +832,7 @@ class DiagnosisResult:
         if self.labels is not None:
             import pandas as pd
 
-            from .io import write_table
+            from ..data.outputs import write_table
 
             write_table(out / "labels.parquet", pd.DataFrame(self.labels))
         (out / "report.md").write_text(self.report_markdown())
@@ -943,7 +944,7 @@ def diagnose(log: RobotLog, robot, *, config: DiagnoseConfig | dict | None = Non
 def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturbed=None) -> DiagnosisResult:
     cfg = DiagnoseConfig.from_dict(config)
     t0 = time.perf_counter()
-    from .signals import complete_derivatives
+    from ..data.differentiation import complete_derivatives
 
     if log.dq is None or log.ddq is None:
         log = complete_derivatives(log)
@@ -1205,7 +1206,7 @@ def _diagnose(log: RobotLog, robot, *, config=None, out_dir=None, labels_disturb
         nm = err.sum(0) / nte / denom
         fit[stage] = {"nmse": {names[j]: float(nm[j]) for j in range(n)}, "mean_nmse": float(nm.mean())}
     if cfg.gp:
-        from .gp import ExactGP
+        from ..gp.exact import ExactGP
 
         X = np.concatenate([q, dq, ddq], axis=1)
         rng = np.random.default_rng(cfg.seed)

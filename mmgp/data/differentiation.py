@@ -1,4 +1,4 @@
-"""Differentiation, resampling and time-block splits of logged signals.
+"""Differentiation and resampling of logged signals.
 
 Velocities and accelerations are estimated from positions with local polynomial (Savitzky-Golay)
 fits, evaluated on the actual, possibly jittered, time stamps: the sample rate sets the window,
@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from .io import InputError, RobotLog
+from ..errors import InputError
+from .logs import RobotLog
 
 
 @dataclass(frozen=True)
@@ -129,27 +130,3 @@ def downsample(log: RobotLog, rate_hz: float) -> RobotLog:
     return log.subset(np.unique(nearest))
 
 
-def time_block_folds(T: int, n_folds: int = 5, gap: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Contiguous time blocks as (train_idx, test_idx) pairs.
-
-    Neighbouring samples are nearly identical, so random splits leak; ``gap`` samples on each
-    side of the test block are dropped from training to stop leakage through the smoother window.
-    """
-    if n_folds < 2 or n_folds > T:
-        raise ValueError(f"n_folds must be in [2, {T}]")
-    edges = np.linspace(0, T, n_folds + 1).round().astype(int)
-    folds = []
-    for k in range(n_folds):
-        lo, hi = edges[k], edges[k + 1]
-        test = np.arange(lo, hi)
-        keep = np.ones(T, bool)
-        keep[max(0, lo - gap):min(T, hi + gap)] = False
-        folds.append((np.flatnonzero(keep), test))
-    return folds
-
-
-def features(log: RobotLog) -> np.ndarray:
-    """GP inputs ``[q, dq, ddq]`` of shape (T, 3n)."""
-    if log.dq is None or log.ddq is None:
-        raise ValueError("complete_derivatives() must run first")
-    return np.concatenate([log.q, log.dq, log.ddq], axis=1)

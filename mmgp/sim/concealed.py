@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import sim
+from . import recording as sim
 
 # Same physical numbers as mmgp.sim.REPLICA: a 0.1 kg rod of 0.2 m and a 0.73 kg ball at its end,
 # horizontal joint axis (world -y), q = 0 with the lever horizontal.
@@ -77,7 +77,7 @@ def robot_setup(robot: str) -> tuple[str, list[str]]:
 
 def nominal_robot(spec: dict):
     """The mmgp RobotModel (nominal, no concealed effect) of a case."""
-    from .robot import RobotModel
+    from ..physics.robot import RobotModel
 
     urdf, joints = robot_setup(spec["robot"])
     return RobotModel.from_urdf(urdf, joints)
@@ -237,7 +237,7 @@ def make_case(spec: dict, seed: int = 0):
 
 def recording_to_log(rec):
     """RobotLog of a Recording (what the diagnosis sees: no truth, no labels)."""
-    from .io import RobotLog
+    from ..data.logs import RobotLog
 
     return RobotLog(path=f"<concealed {rec.info.get('spec', {}).get('name', '')}>", t=rec.t, q=rec.q, tau=rec.tau,
                     dq=rec.dq, ddq=rec.ddq, metadata={"joint_names": rec.info["joint_names"]})

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .gp import ExactGP
+from mmgp.gp.exact import ExactGP
 
 
 def threshold_gp_labels(X: np.ndarray, Y: np.ndarray, *, k_sigma: float = 3.0, seed: int = 0) -> np.ndarray:

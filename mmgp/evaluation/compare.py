@@ -29,10 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluate import normalised_mse
-from .gp import ExactGP, default_hyper
-from .io import RobotLog, atomic_write_bytes, jsonable
-from .signals import SavitzkyGolay, time_block_folds
+from .metrics import normalised_mse
+from ..gp.exact import ExactGP
+from ..gp.hyper import default_hyper
+from ..data.logs import RobotLog
+from ..data.outputs import atomic_write_bytes, jsonable
+from ..data.differentiation import SavitzkyGolay
+from ..data.folds import time_block_folds
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
@@ -66,7 +69,7 @@ def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: 
     ``hyper_fit``: "loo" (ExactGP's own leave-one-out) or "block" (leave-time-block-out)."""
     if hyper_fit == "loo":
         return ExactGP(**opts).fit(X, Y)
-    from .em import optimise_hyper_windowed
+    from ..gp.windowed import optimise_hyper_windowed
 
     k = min(len(X), int(opts.get("max_fit_points", 1000)))
     fit_idx = np.unique(np.linspace(0, len(X) - 1, k).round().astype(int))

@@ -20,7 +20,7 @@ with Kuu = k(Z, Z), Kuf = k(Z, X), noise variance s2, the collapsed variational 
 computed through L = chol(Kuu), A = L^-1 Kuf / s (M, N), B = I + A A^T, LB = chol(B):
 O(N M^2) time, O(N M) memory per output.
 
-Hyperparameters: the exact GP's LOO objective (``mmgp.gp.optimise_hyper``) on a random subset of
+Hyperparameters: the exact GP's LOO objective (``mmgp.gp.hyper.optimise_hyper``) on a random subset of
 ``max_fit_points`` samples, the same procedure as ``ExactGP`` (so ``hyper_`` means the same thing
 and can be passed between the two).
 
@@ -35,8 +35,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .gp import (DTYPE, LOG_2PI, ExactGP, Hyper, default_hyper, fit_hyper_subsets, prepare_fit,
-                 rbf_kernel, robust_cholesky)
+from .exact import ExactGP, prepare_fit
+from .hyper import Hyper, default_hyper, fit_hyper_subsets
+from .kernels import rbf_kernel
+from .linalg import DTYPE, LOG_2PI, robust_cholesky
 
 
 def kmeans_inducing(Xs: np.ndarray, n_inducing: int, seed: int = 0) -> np.ndarray:

@@ -35,7 +35,7 @@ import pandas as pd
 def robot_urdf_path(name: str) -> str:
     """Path (str) of the URDF of an example-robot-data robot (e.g. ``"panda"``, ``"ur5"``);
     the lookup is :func:`mmgp.robot.robot_urdf_path`."""
-    from .robot import robot_urdf_path as _lookup
+    from ..physics.robot import robot_urdf_path as _lookup
 
     return str(_lookup(name))
 
@@ -315,7 +315,8 @@ class Recording:
     def write(self, log_path, labels_path=None) -> None:
         """Write the log (contract section 1, metadata ``robot``/``joint_names`` from ``info``) and
         the labels file."""
-        from .io import write_log, write_table
+        from ..data.logs import write_log
+        from ..data.outputs import write_table
 
         write_log(log_path, self.t, self.q, self.tau, dq=self.dq, ddq=self.ddq, robot=self.info.get("robot"),
                   joint_names=self.info.get("joint_names"))

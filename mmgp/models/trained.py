@@ -15,98 +15,17 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from . import __version__
-from .config import TrainConfig
-from .em import MultimodalSEM, select_n_modes
-from .gp import ExactGP, Hyper
-from .io import InputError, RobotLog, read_log
-from .signals import SavitzkyGolay, complete_derivatives, downsample
+from .. import __version__
+from ..config import TrainConfig
+from ..data.logs import RobotLog
+from ..errors import InputError
+from ..gp.exact import ExactGP
+from ..gp.hyper import Hyper
+from .features import Features, _features, _input_names, build_features, friction_velocity_scale, load_logs, resolve_mean_basis
+from .sem import MultimodalSEM, select_n_modes
 
 MODEL_FORMAT = "mmgp-model"
 MODEL_VERSION = 1
-
-
-def load_logs(paths: Sequence[str | Path], cfg: TrainConfig, robot=None) -> list[RobotLog]:
-    """Read, check, differentiate and (optionally) downsample each log."""
-    logs = []
-    n_ref = None
-    for p in paths:
-        log = read_log(p, n_joints=robot.n_joints if robot is not None else None,
-                       joint_names=robot.joint_names if robot is not None else None)
-        if n_ref is None:
-            n_ref = log.n_joints
-        elif log.n_joints != n_ref:
-            raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=p, column="q_0")
-        log = complete_derivatives(log, SavitzkyGolay(window_s=cfg.diff_window_s, cv=True))
-        if cfg.rate_hz is not None:
-            log = downsample(log, cfg.rate_hz)
-        logs.append(log)
-    return logs
-
-
-@dataclass
-class Features:
-    """GP inputs and targets built from logs. X (T, d), Y (T, n), tau_rbd (T, n) or None."""
-
-    X: np.ndarray
-    Y: np.ndarray
-    tau_rbd: np.ndarray | None
-    starts: list[int]
-    t: np.ndarray | None = None
-    basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
-
-
-def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
-    """Per-joint velocity scale v_s (n,) of the smooth sign tanh(dq / v_s): 5% of the joint's
-    95th-percentile speed, so the sign saturates for all but the slowest samples on any robot."""
-    v = 0.05 * np.percentile(np.abs(dq), 95, axis=0)
-    return np.maximum(v, 1e-6)
-
-
-def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
-    """The mean basis a model uses: "payload", "rbd" or None (see TrainConfig.mean_basis)."""
-    rbd_ok = robot is not None and semiparametric == "residual"
-    if kind == "auto":
-        return "payload" if rbd_ok else None
-    if kind in ("rbd", "payload") and not rbd_ok:
-        raise InputError(f"mean_basis '{kind}' needs a robot model and semiparametric 'residual'")
-    return None if kind == "none" else kind
-
-
-def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
-                   friction_scale: np.ndarray | None = None, basis_kind: str | None = None) -> Features:
-    """GP inputs [q, dq, ddq, tanh(dq / v_s)(, tau_rbd)] and targets from checked logs."""
-    q = np.concatenate([lg.q for lg in logs])
-    dq = np.concatenate([lg.dq for lg in logs])
-    ddq = np.concatenate([lg.ddq for lg in logs])
-    tau = np.concatenate([lg.tau for lg in logs])
-    starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
-    f.t = np.concatenate([lg.t for lg in logs])
-    return f
-
-
-def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-              friction_sign: float | None = None, basis_kind: str | None = None) -> Features:
-    # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
-    # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
-    # step to the GP directly, so lengthscales can stay long.
-    parts = [q, dq, ddq]
-    if friction_scale is not None:
-        parts.append(np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign))
-    X = np.concatenate(parts, axis=1)
-    tau_rbd = None
-    if robot is not None and semiparametric != "none":
-        tau_rbd = robot.rnea(q, dq, ddq)
-        if semiparametric == "feature":
-            X = np.concatenate([X, tau_rbd], axis=1)
-    Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
-    basis = None
-    if basis_kind == "rbd":
-        basis = robot.regressor(q, dq, ddq)
-    elif basis_kind == "payload":
-        basis = robot.regressor(q, dq, ddq)[..., -10:]     # the distal body's inertial parameters
-    return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
 class TrainedModel:
@@ -150,7 +69,7 @@ class TrainedModel:
     @property
     def robot(self):
         if self._robot is None and self.robot_spec:
-            from .robot import load_robot
+            from ..physics.robot import load_robot
 
             self._robot = load_robot(robot=self.robot_spec.get("robot"), urdf=self.robot_spec.get("urdf"),
                                      joint_names=self.robot_spec.get("joint_names"))
@@ -322,15 +241,6 @@ def train(paths: Sequence[str | Path], cfg: TrainConfig, *, robot=None,
     }
     model.report = report
     return TrainResult(model, sem, logs, feats, report)
-
-
-def _input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:
-    names = [f"q_{j}" for j in range(n)] + [f"dq_{j}" for j in range(n)] + [f"ddq_{j}" for j in range(n)]
-    if with_friction:
-        names += [f"tanh(dq_{j}/v_s)" for j in range(n)]
-    if with_rbd:
-        names += [f"tau_rbd_{j}" for j in range(n)]
-    return names
 
 
 def labels_frame(result: TrainResult):

@@ -1,4 +1,4 @@
-"""Reading and validating robot logs and label files (CONTRACT section 1), and atomic outputs.
+"""Reading and validating robot logs and label files (CONTRACT section 1).
 
 A log is a table with ``t``, ``q_0..q_{n-1}``, ``tau_0..tau_{n-1}`` and optionally ``dq_*`` and
 ``ddq_*``. Everything that can be wrong with one is reported as a single :class:`InputError` that
@@ -6,39 +6,20 @@ names the file, the column and the row, so the command line can print it and exi
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
-import shutil
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Sequence
 
 import numpy as np
 import pandas as pd
 
+from ..errors import InputError
+from .outputs import write_table
+
 MIN_SAMPLES = 10
-
-
-class InputError(ValueError):
-    """Bad input: one clear message naming the file, the column and the row where known."""
-
-    def __init__(self, message: str, *, file: str | os.PathLike | None = None,
-                 column: str | None = None, row: int | None = None):
-        self.file = None if file is None else str(file)
-        self.column = column
-        self.row = row
-        where = []
-        if self.file is not None:
-            where.append(f"file {self.file}")
-        if column is not None:
-            where.append(f"column '{column}'")
-        if row is not None:
-            where.append(f"row {row}")
-        prefix = (", ".join(where) + ": ") if where else ""
-        super().__init__(prefix + message)
 
 
 @dataclass(frozen=True)
@@ -46,7 +27,7 @@ class RobotLog:
     """Checked arrays of one log.
 
     Shapes: ``t`` (T,), ``q``/``dq``/``ddq``/``tau`` (T, n_joints). ``dq``/``ddq`` are None when
-    the file lacks them (``mmgp.signals.complete_derivatives`` fills them in).
+    the file lacks them (``mmgp.data.differentiation.complete_derivatives`` fills them in).
     Units: s, rad (m), rad/s, rad/s^2, N*m (N).
     """
 
@@ -278,103 +259,3 @@ def write_log(path: str | os.PathLike, t: np.ndarray, q: np.ndarray, tau: np.nda
     return path
 
 
-def write_table(path: str | os.PathLike, df: pd.DataFrame, metadata: dict | None = None) -> None:
-    """Write a DataFrame to Parquet (with string metadata) or CSV, via a temp file + rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        if path.suffix.lower() == ".csv":
-            df.to_csv(tmp, index=False)
-        else:
-            import pyarrow as pa
-            import pyarrow.parquet as pq
-
-            table = pa.Table.from_pandas(df, preserve_index=False)
-            if metadata:
-                merged = dict(table.schema.metadata or {})
-                merged.update({k.encode(): str(v).encode() for k, v in metadata.items()})
-                table = table.replace_schema_metadata(merged)
-            pq.write_table(table, tmp)
-        os.chmod(tmp, _default_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _default_file_mode() -> int:
-    # mkstemp/mkdtemp create owner-only entries; outputs get the usual umask-derived mode instead.
-    return 0o666 & ~_umask()
-
-
-@contextlib.contextmanager
-def atomic_output_dir(out: str | os.PathLike, *, force: bool = False) -> Iterator[Path]:
-    """Yield a temporary folder that becomes ``out`` only if the block finishes without error.
-
-    An existing non-empty ``out`` is refused unless ``force``; with ``force`` it is replaced only
-    after the new content is complete, so a failure leaves the old content untouched.
-    """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("--out exists and is not a folder", file=out)
-    if out.exists() and any(out.iterdir()) and not force:
-        raise InputError("--out exists and is not empty (use --force to replace it)", file=out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial."))
-    os.chmod(tmp, 0o777 & ~_umask())
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out.exists():
-        trash = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old."))
-        os.replace(out, trash / "old")
-        os.replace(tmp, out)
-        shutil.rmtree(trash, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
-
-
-def jsonable(x):
-    """Plain-JSON copy of nested dicts/lists/arrays/numpy scalars; non-finite floats become None
-    (JSON has no NaN)."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if np.isfinite(x) else None
-    return x
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write a file completely or not at all."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.chmod(tmp, _default_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
