@@ -40,7 +40,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             if seed == 0:
-                log, lab = ROOT / "datasets/replica/replica_log.parquet", ROOT / "datasets/replica/replica_labels.parquet"
+                log, lab = ROOT / "mmgp/resources/replica/replica_log.parquet", ROOT / "mmgp/resources/replica/replica_labels.parquet"
             else:
                 rec = actuator_replica(seed=seed)
                 log, lab = Path(tmp) / f"log{seed}.parquet", Path(tmp) / f"lab{seed}.parquet"

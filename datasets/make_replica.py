@@ -1,4 +1,4 @@
-"""Write the shipped 1-DOF replica recording: datasets/replica/replica_log.parquet + replica_labels.parquet.
+"""Write the shipped 1-DOF replica recording: mmgp/resources/replica/replica_log.parquet + replica_labels.parquet.
 
 A MuJoCo re-creation of the actuator experiment of Haninger (2016), ch. 5. Reproducible: the files
 depend only on the seed (default 0) and the package versions of numpy and mujoco.
@@ -21,7 +21,7 @@ N(0, 0.02) N*m). dq and ddq are left out (mmgp estimates them). Metadata: joint_
 Labels: t, mode (always 0), disturbed by the contract rule: 1 when the push's joint torque exceeds
 3 x 0.02 N*m + 2 x the dry-friction level at that sample, 0 when no push force acts, -1 in between.
 
-Usage: python datasets/make_replica.py [--seed 0] [--out datasets/replica]
+Usage: python datasets/make_replica.py [--seed 0] [--out mmgp/resources/replica]
 """
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--n-samples", type=int, default=330)
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "replica"))
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "mmgp" / "resources" / "replica"))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     rec = actuator_replica(seed=args.seed, n_samples=args.n_samples)

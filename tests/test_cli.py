@@ -14,8 +14,8 @@ from mmgp.evaluation.metrics import classification_figures
 from mmgp.data.logs import read_labels
 
 ROOT = Path(__file__).resolve().parents[1]
-LOG = ROOT / "datasets/replica/replica_log.parquet"
-LABELS = ROOT / "datasets/replica/replica_labels.parquet"
+LOG = ROOT / "mmgp/resources/replica/replica_log.parquet"
+LABELS = ROOT / "mmgp/resources/replica/replica_labels.parquet"
 runner = CliRunner()
 
 

@@ -16,7 +16,7 @@ from mmgp.compensator.field import check_passivity, compensator_from_model
 from mmgp.config import load_config
 from mmgp.models.trained import train
 
-REPLICA_LOG = Path(__file__).resolve().parents[1] / "datasets" / "replica" / "replica_log.parquet"
+REPLICA_LOG = Path(__file__).resolve().parents[1] / "mmgp" / "resources" / "replica" / "replica_log.parquet"
 
 
 @pytest.fixture(scope="module")

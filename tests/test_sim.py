@@ -204,7 +204,7 @@ def test_shipped_replica_is_the_seed0_recording(tmp_path):
     rec = sim.actuator_replica(seed=0)
     from pathlib import Path
 
-    shipped = Path(__file__).resolve().parents[1] / "datasets" / "replica"
+    shipped = Path(__file__).resolve().parents[1] / "mmgp" / "resources" / "replica"
     log = read_log(shipped / "replica_log.parquet")
     assert "robot" not in log.metadata and log.joint_names == ["lever_joint"]
     assert log.dq is None

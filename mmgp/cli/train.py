@@ -123,12 +123,6 @@ def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp
     typer.echo(format_figures(fig))
 
 
-def _demo_data() -> tuple[Path, Path] | None:
-    here = Path(__file__).resolve().parents[2] / "datasets" / "replica"
-    log, lab = here / "replica_log.parquet", here / "replica_labels.parquet"
-    return (log, lab) if log.is_file() and lab.is_file() else None
-
-
 @app.command()
 def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folder."),
          force: bool = typer.Option(False, "--force")):
@@ -139,21 +133,14 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
     from ..data.outputs import atomic_output_dir, atomic_write_bytes
     from ..data.logs import read_labels
     from ..models.trained import labels_frame, train as run_train
+    from ..resources import demo_files
 
     marker = ".mmgp-demo"
     if out.exists() and (out / marker).exists():
         force = True  # the demo may replace its own previous output
     try:
         with atomic_output_dir(out, force=force) as tmp:
-            data = _demo_data()
-            if data is None:
-                from ..sim.recording import actuator_replica
-
-                typer.echo("shipped replica not found next to the package; regenerating it (seed 0)", err=True)
-                rec = actuator_replica(seed=0)
-                data = (tmp / "replica_log.parquet", tmp / "replica_labels.parquet")
-                rec.write(*data)
-            log, lab = data
+            log, lab = demo_files()
             typer.echo(f"demo: training on {log}", err=True)
             result = run_train([log], load_config(), progress=_progress_printer(False))
             _write_training_outputs(tmp, result)
