@@ -1,5 +1,5 @@
 """mmgp: multimodal Gaussian-process inverse dynamics from messy robot logs."""
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: F401
 
 
 def load_compensator(path):
