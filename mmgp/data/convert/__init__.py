@@ -11,7 +11,6 @@ eight shared real-robot datasets (:mod:`.datasets`), and contract logs themselve
 from __future__ import annotations
 
 import os
-from dataclasses import replace
 from pathlib import Path
 
 from .base import ConvertedLog, check_log, order_for_robot, order_in_time, select_joints
@@ -48,7 +47,7 @@ def read_input(path: str | os.PathLike, *, robot: str | None = None, map_path: s
     if topic is not None:
         options["topic"] = topic
     reader = pick_reader(path, options)
-    return [_finish(replace(log, notes=list(log.notes)), options, path) for log in reader.read(path, options)]
+    return [_finish(log, options, path) for log in reader.read(path, options)]
 
 
 def convert(path: str | os.PathLike, out: str | os.PathLike, *, robot: str | None = None,

@@ -7,14 +7,14 @@ ordering (:func:`order_for_robot`) apply whatever the format.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from ...errors import InputError
-from ..logs import MIN_SAMPLES
+from ..logs import MIN_SAMPLES, RobotLog
 
 KINDS = ("q", "dq", "ddq", "tau")
 
@@ -23,50 +23,57 @@ KINDS = ("q", "dq", "ddq", "tau")
 MAX_REORDER_STEPS = 10.0
 
 
-@dataclass
-class ConvertedLog:
-    """One contract log, ready to write.
+@dataclass(frozen=True)
+class ConvertedLog(RobotLog):
+    """One contract log, ready to write: a :class:`RobotLog` plus where it goes and came from.
 
-    ``t`` (T,) s; ``q``/``dq``/``ddq``/``tau`` (T, n) rad, rad/s, rad/s^2, N*m (m, m/s, N for
-    prismatic joints); ``dq``/``ddq`` None when the source lacks them (mmgp estimates them).
-    ``name`` names the part (file name in a folder output); ``urdf`` is a URDF file to copy next
-    to the log (named in its metadata); ``source`` says where the numbers came from and ``notes``
-    every convention applied on the way (both stored in the Parquet metadata).
+    Arrays as in :class:`RobotLog` (``t`` (T,) s; ``q``/``dq``/``ddq``/``tau`` (T, n) rad,
+    rad/s, rad/s^2, N*m; m, m/s, N for prismatic joints), ``dq``/``ddq`` None when the source
+    lacks them (mmgp estimates them); ``metadata`` holds ``robot`` and ``joint_names``; ``path``
+    is the input read. ``name`` names the part (file name in a folder output); ``urdf`` is a URDF
+    file to copy next to the log (named in its metadata); ``source`` says where the numbers came
+    from and ``notes`` every convention applied on the way (both stored in the Parquet metadata).
     """
 
-    name: str
-    t: np.ndarray
-    q: np.ndarray
-    tau: np.ndarray
-    dq: np.ndarray | None = None
-    ddq: np.ndarray | None = None
-    joint_names: list[str] | None = None
-    robot: str | None = None
+    name: str = ""
     urdf: Path | None = None
     source: str = ""
-    notes: list[str] = field(default_factory=list)
+    notes: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, name: str, t, q, tau, *, dq=None, ddq=None, joint_names: Sequence[str] | None = None,
+           robot: str | None = None, urdf: Path | None = None, source: str = "",
+           notes: Sequence[str] = (), file: str | Path = "") -> "ConvertedLog":
+        """A log from arrays (converted to float64) and what is known about them."""
+        meta = {} if robot is None else {"robot": robot}
+        if joint_names is not None:
+            meta["joint_names"] = list(joint_names)
+        as_float = lambda a: None if a is None else np.asarray(a, dtype=np.float64)  # noqa: E731
+        return cls(path=str(file), t=as_float(t), q=as_float(q), tau=as_float(tau), dq=as_float(dq),
+                   ddq=as_float(ddq), metadata=meta, name=name, urdf=urdf, source=source, notes=tuple(notes))
 
     @property
-    def n_joints(self) -> int:
-        return int(self.q.shape[1])
+    def robot(self) -> str | None:
+        return self.metadata.get("robot")
 
-    @property
-    def n_samples(self) -> int:
-        return int(self.t.shape[0])
+    def noted(self, *notes: str) -> "ConvertedLog":
+        return replace(self, notes=self.notes + notes)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The joint arrays present, by kind."""
         return {k: getattr(self, k) for k in KINDS if getattr(self, k) is not None}
 
     def with_columns(self, idx: Sequence[int], names: list[str] | None) -> "ConvertedLog":
-        """The same log restricted/reordered to joint columns ``idx``."""
+        """The same log restricted/reordered to joint columns ``idx``, named ``names``."""
         idx = list(idx)
-        cols = {k: a[:, idx] for k, a in self.arrays().items()}
-        return replace(self, joint_names=names, **cols)
+        meta = {k: v for k, v in self.metadata.items() if k != "joint_names"}
+        if names is not None:
+            meta["joint_names"] = list(names)
+        return replace(self, metadata=meta, **{k: a[:, idx] for k, a in self.arrays().items()})
 
-    def with_rows(self, idx: np.ndarray) -> "ConvertedLog":
-        rows = {k: a[idx] for k, a in self.arrays().items()}
-        return replace(self, t=self.t[idx], **rows)
+    def with_robot(self, robot: str) -> "ConvertedLog":
+        """Named robot ``robot`` (an example-robot-data model replaces any URDF)."""
+        return replace(self, metadata=dict(self.metadata, robot=robot), urdf=None)
 
 
 def check_log(log: ConvertedLog, file: str | Path) -> None:
@@ -125,9 +132,8 @@ def order_in_time(log: ConvertedLog, file: str | Path, what: str = "time stamp")
                 f"more than {MAX_REORDER_STEPS:g} sample steps, a clock reset or two recordings in one "
                 "input; split it first", file=file, row=k + 1)
         order = np.argsort(t, kind="stable")
-        log = log.with_rows(order)
-        log.notes.append(f"{int((order != np.arange(order.size)).sum())} samples out of {what} order "
-                         "were sorted by time")
+        log = log.subset(order).noted(f"{int((order != np.arange(order.size)).sum())} samples out of "
+                                      f"{what} order were sorted by time")
     return _drop_repeats(log, file, what)
 
 
@@ -145,9 +151,7 @@ def _drop_repeats(log: ConvertedLog, file, what: str) -> ConvertedLog:
             "use the recording time (map key 'stamp: receive')", file=file, row=k)
     keep = np.ones(log.n_samples, dtype=bool)
     keep[same_t] = False
-    out = log.with_rows(np.flatnonzero(keep))
-    out.notes.append(f"{same_t.size} exact repeats (same {what}, same values) dropped")
-    return out
+    return log.subset(np.flatnonzero(keep)).noted(f"{same_t.size} exact repeats (same {what}, same values) dropped")
 
 
 def order_for_robot(log: ConvertedLog, robot: str, file: str | Path) -> ConvertedLog:
@@ -160,22 +164,20 @@ def order_for_robot(log: ConvertedLog, robot: str, file: str | Path) -> Converte
 
     if log.joint_names is None:
         model = load_robot(robot=robot, n_joints=log.n_joints)
-        out = replace(log, joint_names=list(model.joint_names), robot=robot, urdf=None)
-        out.notes.append(f"no joint names in the input: columns taken as {robot}'s joints in model order")
-        return out
+        return log.with_columns(range(log.n_joints), model.joint_names).with_robot(robot).noted(
+            f"no joint names in the input: columns taken as {robot}'s joints in model order")
     model_order = load_robot(robot=robot).joint_names
     keep = [nm for nm in model_order if nm in log.joint_names]
     if not keep:
         raise InputError(f"none of the input's joints {log.joint_names} is a joint of robot '{robot}' "
                          f"({model_order})", file=file)
     load_robot(robot=robot, joint_names=keep)  # refuses joints that cannot be one log column
-    out = log.with_columns([log.joint_names.index(nm) for nm in keep], keep)
-    out = replace(out, robot=robot, urdf=None)
+    out = log.with_columns([log.joint_names.index(nm) for nm in keep], keep).with_robot(robot)
     dropped = [nm for nm in log.joint_names if nm not in keep]
     if dropped:
-        out.notes.append(f"joints not in robot '{robot}' dropped: {dropped}")
+        out = out.noted(f"joints not in robot '{robot}' dropped: {dropped}")
     if keep != [nm for nm in log.joint_names if nm in keep]:
-        out.notes.append(f"joints reordered to {robot}'s model order")
+        out = out.noted(f"joints reordered to {robot}'s model order")
     return out
 
 

@@ -42,7 +42,7 @@ def franka_log(name: str, t: np.ndarray, fields: dict[str, np.ndarray], options:
         notes.append("tau = tau_J_d (desired torque WITHOUT gravity, chosen in the map): not the total "
                      "joint torque")
     names = options.get("joint_names") or FRANKA_JOINTS
-    return ConvertedLog(name=name, t=np.asarray(t, dtype=np.float64), q=fields["q"], tau=fields[src],
+    return ConvertedLog.of(name=name, t=np.asarray(t, dtype=np.float64), q=fields["q"], tau=fields[src],
                         dq=fields.get("dq"), joint_names=list(names), source=source, notes=notes)
 
 

@@ -103,5 +103,5 @@ def assemble(messages: Sequence[JointStateMessage], options: dict[str, Any], rob
         notes.append(f"{len(messages) - len(rows)} messages of other joint sets skipped")
     if dq is None:
         notes.append("velocity missing in some messages: dq left out (mmgp estimates it)")
-    return ConvertedLog(name=name, t=(stamps - stamps.min()) * 1e-9, q=q, tau=tau, dq=dq,
+    return ConvertedLog.of(name=name, t=(stamps - stamps.min()) * 1e-9, q=q, tau=tau, dq=dq,
                         joint_names=joints, source=source, notes=notes)

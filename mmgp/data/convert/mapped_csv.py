@@ -70,6 +70,6 @@ def read(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
     notes = [f"columns as mapped in {Path(map_file(options)).name}"]
     if scaled:
         notes.append("scaled to contract units: " + ", ".join(f"{k} ({units[k]})" for k in scaled))
-    return [ConvertedLog(name=path.stem, t=np.asarray(arrays["t"]), q=arrays["q"], tau=arrays["tau"],
+    return [ConvertedLog.of(name=path.stem, t=np.asarray(arrays["t"]), q=arrays["q"], tau=arrays["tau"],
                          dq=arrays.get("dq"), ddq=arrays.get("ddq"), joint_names=names,
                          source=f"{path.name}: columns {cols}", notes=notes)]

@@ -35,8 +35,8 @@ def _read_contract(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
     from ..logs import read_log
 
     log = read_log(path, min_samples=1)
-    return [ConvertedLog(name=path.stem, t=log.t, q=log.q, tau=log.tau, dq=log.dq, ddq=log.ddq,
-                         joint_names=log.joint_names, robot=log.metadata.get("robot"),
+    return [ConvertedLog.of(name=path.stem, t=log.t, q=log.q, tau=log.tau, dq=log.dq, ddq=log.ddq,
+                         joint_names=log.joint_names, robot=log.metadata.get("robot"), file=path,
                          source=f"contract log {path.name}", notes=[])]
 
 

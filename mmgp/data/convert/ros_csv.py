@@ -11,6 +11,7 @@ export without either uses its ``time`` field (robot clock, s). ``t`` starts at 
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -98,5 +99,4 @@ def read_joint_states(path: Path, options: dict[str, Any]) -> list[ConvertedLog]
                                   blocks["velocity"][k], blocks["effort"][k]) for k in range(len(df))]
     log = assemble(messages, options, options.get("robot"), path, path.stem,
                    f"sensor_msgs/JointState CSV export {path.name}")
-    log.notes[0] = note
-    return [log]
+    return [replace(log, notes=(note,) + log.notes[1:])]

@@ -121,5 +121,5 @@ def read(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
         raise InputError(f"topic {topic} has no messages", file=path)
     log = (_joint_state_log if msgtype == JOINT_STATE else _franka_log)(items, options, path, topic)
     if use_receive or fell_back:
-        log.notes.append("time = recording (receive) time" + (": every header stamp was zero" if fell_back else ""))
+        log = log.noted("time = recording (receive) time" + (": every header stamp was zero" if fell_back else ""))
     return [log]

@@ -82,7 +82,7 @@ def read(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
         notes.append("target_moment is the controller's model torque for the planned motion, not a "
                      "measurement: friction and payload errors it does not model are absent")
     names_j = options.get("joint_names") or (UR_JOINTS if n == 6 else None)
-    return [ConvertedLog(name=path.stem, t=numeric_block(df, ["timestamp"], path)[:, 0],
+    return [ConvertedLog.of(name=path.stem, t=numeric_block(df, ["timestamp"], path)[:, 0],
                          q=numeric_block(df, q_cols, path), tau=tau,
                          dq=numeric_block(df, dq_cols, path) if dq_cols else None,
                          joint_names=list(names_j) if names_j else None,

@@ -80,7 +80,7 @@ def _gp_only(name: str, X: np.ndarray, Y: np.ndarray, source: str, notes: list[s
     dt = estimate_row_spacing(q, dq)
     notes = [f"GP only (no robot model); rate not stated: t = row * {dt:.6f} s (row spacing estimated "
              "from q and dq)"] + notes
-    return ConvertedLog(name=name, t=np.arange(len(X)) * dt, q=q, dq=dq, ddq=ddq, tau=Y,
+    return ConvertedLog.of(name=name, t=np.arange(len(X)) * dt, q=q, dq=dq, ddq=ddq, tau=Y,
                         source=source, notes=notes)
 
 
@@ -125,7 +125,7 @@ def read_ur10(folder: Path, file: Path | None, options: dict[str, Any]) -> list[
              "time (when: not stated)",
              "ddq rescaled by 0.0083/0.008 (the file used an 8.3 ms step)" if fix
              else "ddq as in the file (= diff(dq) / 0.0083)"]
-    return [ConvertedLog(name="polydoros_ur10_pickplace", t=np.arange(len(A)) * UR10_DT, q=A[:, 0:6],
+    return [ConvertedLog.of(name="polydoros_ur10_pickplace", t=np.arange(len(A)) * UR10_DT, q=A[:, 0:6],
                          dq=A[:, 6:12], ddq=ddq, tau=A[:, 18:24], joint_names=list(UR_JOINTS), robot="ur10",
                          source="Polydoros et al. IROS 2015, UR10 pick and place (urPicknPlace)", notes=notes)]
 
@@ -144,7 +144,7 @@ def read_baxter(folder: Path, file: Path | None, options: dict[str, Any]) -> lis
     notes = [f"rate not stated: t = row * {dt:.6f} s (row spacing estimated from q and dq of all trajectories)",
              "columns reordered from the file's e0,e1,s0,s1,w0,w1,w2 to model order; left-arm names "
              "(which arm is not stated)", "ddq not logged (left out: mmgp estimates it)"]
-    return [ConvertedLog(name=f"baxter_traj{int(k[len('baxtertraj'):]):02d}", t=np.arange(len(A)) * dt,
+    return [ConvertedLog.of(name=f"baxter_traj{int(k[len('baxtertraj'):]):02d}", t=np.arange(len(A)) * dt,
                          q=A[:, 0:7][:, perm], dq=A[:, 7:14][:, perm], tau=A[:, 14:21][:, perm],
                          joint_names=names, robot="baxter", notes=list(notes),
                          source=f"Polydoros & Nalpantidis IROS 2016, Baxter {k}")

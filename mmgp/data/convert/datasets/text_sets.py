@@ -66,7 +66,7 @@ def read_panda(folder: Path, file: Path | None, options: dict[str, Any]) -> list
         if arr.size != 7 * t.size:
             raise InputError(f"{arr.size} values for {t.size} time stamps: expected 7 per stamp",
                              file=d / f"exciting_traj_{k}.txt")
-    return [ConvertedLog(name="panda_gaz2019", t=t, q=q.reshape(-1, 7), dq=dq.reshape(-1, 7),
+    return [ConvertedLog.of(name="panda_gaz2019", t=t, q=q.reshape(-1, 7), dq=dq.reshape(-1, 7),
                          tau=tau.reshape(-1, 7), joint_names=list(PANDA_JOINTS), robot="panda",
                          source="Gaz et al. RA-L 2019, exciting trajectory 1",
                          notes=["ddq not logged (left out: mmgp estimates it)", "tau: measured joint torques"])]
@@ -90,7 +90,7 @@ def read_staubli(folder: Path, file: Path | None, options: dict[str, Any]) -> li
     q = np.linalg.solve(R, m.T).T
     q[:, 1] -= np.pi / 2
     q[:, 2] += np.pi / 2
-    return [ConvertedLog(name="staubli_tx40", t=np.arange(len(q)) * TX40_DT, q=q, tau=tau_m @ R,
+    return [ConvertedLog.of(name="staubli_tx40", t=np.arange(len(q)) * TX40_DT, q=q, tau=tau_m @ R,
                          joint_names=[f"joint_{i}" for i in range(1, 7)], urdf=folder / "tx40_mdh_modified.urdf",
                          source="FIGAROH Staubli TX40 identification data (motor side)",
                          notes=["5 kHz: t = row * 0.0002 s", "q = R^-1 motor angles (coupled wrist), joint 2 "
@@ -130,7 +130,7 @@ def read_tiago(folder: Path, file: Path | None, options: dict[str, Any]) -> list
         mass = _tiago_torso_mass(names)
         tau[:, names.index("torso_lift_joint")] += GRAVITY * mass
         notes.append(f"tau = effort * gear ratio * motor torque constant (FIGAROH); torso + 9.81 * {mass:.3f} kg")
-    return [ConvertedLog(name="tiago_figaroh", t=tables["position"][:, 0], q=tables["position"][:, 1:],
+    return [ConvertedLog.of(name="tiago_figaroh", t=tables["position"][:, 0], q=tables["position"][:, 1:],
                          dq=tables["velocity"][:, 1:], tau=tau, joint_names=names, robot="tiago",
                          source="FIGAROH TIAGo dynamic identification log (joint_states)", notes=notes)]
 
@@ -143,7 +143,7 @@ def read_iiwa(folder: Path, file: Path | None, options: dict[str, Any]) -> list[
         # sensor sign convention: -tau matches the URDF's gravity torque (corr 0.99 on joints 2, 4)
         tau = -tau
     dt = estimate_row_spacing(q, dq)
-    return [ConvertedLog(name="iiwa14_lasa_subset", t=np.arange(len(A)) * dt, q=q, dq=dq, ddq=ddq, tau=tau,
+    return [ConvertedLog.of(name="iiwa14_lasa_subset", t=np.arange(len(A)) * dt, q=q, dq=dq, ddq=ddq, tau=tau,
                          joint_names=list(IIWA_JOINTS), urdf=folder / "iiwa14.urdf",
                          source="EPFL LASA iiwa 14 subset (Uebersax), every 20th row",
                          notes=[f"rate not stated: t = row * {dt:.6f} s (row spacing estimated from q and dq)",
