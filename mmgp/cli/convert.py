@@ -15,7 +15,7 @@ def _summary(path: Path, log) -> list[str]:
     kinds = "/".join(k for k in ("q", "dq", "ddq", "tau") if getattr(log, k) is not None)
     lines = [f"wrote {path}: {log.n_samples} rows, {log.n_joints} joints, {kinds}, "
              f"t {log.t[0]:.3f} .. {log.t[-1]:.3f} s, robot {log.robot or '-'}"
-             + (f", URDF {log.urdf.name}" if log.urdf is not None else "")]
+             + (f", URDF {path.stem}.urdf" if log.urdf is not None and path.suffix.lower() != ".csv" else "")]
     if path.suffix.lower() == ".csv" and (log.robot or log.joint_names):
         lines.append("  note: a CSV log holds no metadata: robot and joint names are not stored (use .parquet)")
     lines += [f"  note: {n}" for n in log.notes]
@@ -33,7 +33,7 @@ def convert(input: Path = typer.Argument(..., help="Bag (.bag, ROS 2 folder, .db
             part: Optional[str] = typer.Option(None, "--part", help="Of an input holding several logs, the one "
                                                "to write to a single --out file."),
             force: bool = typer.Option(False, "--force", help="Replace an existing --out.")):
-    """Turn a robot recording into a contract log (t, q, [dq], [ddq], tau + metadata)."""
+    """Turn a robot recording into a contract log: t, q, tau (dq, ddq when recorded) and metadata."""
     from ..data.convert import read_input, write_logs
 
     start = time.perf_counter()

@@ -38,8 +38,11 @@ def recognises(path: Path, options: dict[str, Any]) -> bool:
 @contextlib.contextmanager
 def open_bag(path: Path) -> Iterator[Any]:
     """An open ``rosbags`` AnyReader; every failure becomes one InputError naming the bag."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
+    try:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise InputError("reading bags needs the 'rosbags' package (pip install rosbags)", file=path) from None
 
     try:
         # definitions stored in the bag win; the default store only serves bags without any
