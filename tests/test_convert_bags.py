@@ -137,6 +137,10 @@ def test_mixed_joint_sets_refused_or_chosen(tmp_path):
     bag2 = write_bag(tmp_path / "partial.bag", True, {"/joint_states": part}, store)
     with pytest.raises(InputError, match="without \\['panda_joint7'\\]"):
         read_input(bag2, map_path=mp)
+    nameless = [(r, JS, joint_state(store, True, r, [], [], [], [])) for r, _, _ in arm]
+    bag3 = write_bag(tmp_path / "nameless.bag", True, {"/joint_states": nameless}, store)
+    with pytest.raises(InputError, match="name no joints"):
+        read_input(bag3)
 
 
 @pytest.mark.parametrize("ros1", [True, False], ids=["ros1", "ros2"])

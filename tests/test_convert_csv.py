@@ -176,4 +176,7 @@ def test_cli_bad_inputs_untouched(tmp_path):
     mp.write_text('delimiter: ";"\ncolums: {t: t}\n')
     res = runner.invoke(app, ["convert", str(path), "--out", str(tmp_path / "o.parquet"), "--map", str(mp)])
     assert res.exit_code == 2 and "unknown map key(s) ['colums']" in res.output
+    mp.write_text('robot: 5\ncolumns: {t: t, q: [p], tau: [f]}\n')
+    res = runner.invoke(app, ["convert", str(path), "--out", str(tmp_path / "o.parquet"), "--map", str(mp)])
+    assert res.exit_code == 2 and "map key 'robot' must be a string" in res.output
     assert path.read_text() == text

@@ -58,7 +58,11 @@ def target_joints(messages: Sequence[JointStateMessage], options: dict[str, Any]
             return list(next(iter(hit.values()))[0])
         groups = hit or groups
     if len(groups) == 1:
-        return list(next(iter(groups.values()))[0])
+        names = list(next(iter(groups.values()))[0])
+        if not names:
+            raise InputError("the messages name no joints (empty 'name'): their columns cannot be matched "
+                             "to joints", file=file)
+        return names
     raise InputError(f"the messages carry {len(groups)} different joint sets: {_describe(groups)}; "
                      "choose the joints with map key 'joints' (or --robot)", file=file)
 

@@ -71,6 +71,11 @@ def load_map(path: str | Path | None) -> dict[str, Any]:
     for key in ("columns", "units", "dataset"):
         if key in data and not isinstance(data[key], dict):
             raise InputError(f"map key '{key}' must be a mapping", file=path, column=key)
+    for key in ("format", "delimiter", "decimal", "robot", "topic", "stamp", "tau_source"):
+        if key in data and not isinstance(data[key], str):
+            raise InputError(f"map key '{key}' must be a string, found {data[key]!r}", file=path, column=key)
+    if "header" in data and not isinstance(data["header"], bool):
+        raise InputError("map key 'header' must be true or false", file=path, column="header")
     for key in ("joint_names", "joints"):
         if key in data and not (isinstance(data[key], list) and all(isinstance(s, str) for s in data[key])):
             raise InputError(f"map key '{key}' must be a list of joint names", file=path, column=key)
