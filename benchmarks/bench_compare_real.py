@@ -8,7 +8,7 @@ folds with the default gap. Must-show: rigid-body + GP cuts the rigid-body error
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_compare_real.py [--out DIR] [--folds 5] [--max-train 2000]
 [--fit-points 400]`` (about 510 s with the defaults, 140 s with ``--max-train 600 --fit-points 300
 --iters 40``, on 2 busy CPU cores).
-The shared datasets folder is ``$MMGP_SHARED_DATASETS`` (default ``<repo>/../shared/datasets``).
+The shared datasets folder is ``<repo>/../shared/datasets``.
 """
 from __future__ import annotations
 
@@ -22,9 +22,10 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "datasets"))
+SHARED = REPO.parent / "shared" / "datasets"
 
-import convert_real as cr  # noqa: E402
+from mmgp.data.convert import convert  # noqa: E402
+from mmgp.errors import InputError  # noqa: E402
 from mmgp.evaluation.compare import compare, format_compare, write_compare
 from mmgp.data.logs import read_log
 from mmgp.physics.robot import load_robot
@@ -41,10 +42,9 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     a = p.parse_args(argv)
     try:
-        cr.dataset_dir("panda_gaz2019")
         tmp = tempfile.TemporaryDirectory()
-        (path,) = cr.convert("panda_gaz2019", tmp.name)
-    except cr.DatasetMissing as exc:
+        (path,) = convert(SHARED / "panda_gaz2019", Path(tmp.name) / "panda_gaz2019.parquet")
+    except InputError as exc:
         print(f"skipped: {exc}")
         return 0
     log = read_log(path)

@@ -142,13 +142,12 @@ def real_panda(root="/work/shared/datasets/panda_gaz2019"):
         return
     import tempfile
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "datasets"))
-    from convert_real import convert_panda_gaz2019
+    from mmgp.data.convert import convert
     from mmgp.data.logs import read_log
 
     with tempfile.TemporaryDirectory() as tmp:
         # the project's converter (ddq left out: diagnose estimates it from dq)
-        path = convert_panda_gaz2019(Path(tmp))[0]
+        (path,) = convert(root, Path(tmp) / "panda_gaz2019.parquet")
         log = read_log(path)
     from mmgp.physics.robot import RobotModel
 

@@ -184,16 +184,16 @@ def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
 
 def part_ur10() -> None:
     print("\n== UR10 pick-and-place (polydoros_ur10_pickplace), payload at tool0; authors: 5 kg ==")
-    sys.path.insert(0, str(REPO / "datasets"))
-    import convert_real as cr
+    from mmgp.data.convert import convert
+    from mmgp.errors import InputError
 
     try:
-        cr.dataset_dir("polydoros_ur10_pickplace")
         with tempfile.TemporaryDirectory() as tmp:
-            (path,) = cr.convert("polydoros_ur10_pickplace", tmp)
+            (path,) = convert(REPO.parent / "shared" / "datasets" / "polydoros_ur10_pickplace",
+                              Path(tmp) / "ur10.parquet")
             log = read_log(path)
             robot = load_robot(log_path=path)
-    except cr.DatasetMissing as exc:
+    except InputError as exc:
         print(f"skipped: {exc}")
         return
     tau = log.tau
