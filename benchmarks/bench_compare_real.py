@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 SHARED = REPO.parent / "shared" / "datasets"
 
-from mmgp.data.convert import convert  # noqa: E402
+from mmgp.convert import convert  # noqa: E402
 from mmgp.errors import InputError  # noqa: E402
 from mmgp.evaluation.compare import compare, format_compare, write_compare
 from mmgp.data.logs import read_log

@@ -142,7 +142,7 @@ def real_panda(root="/work/shared/datasets/panda_gaz2019"):
         return
     import tempfile
 
-    from mmgp.data.convert import convert
+    from mmgp.convert import convert
     from mmgp.data.logs import read_log
 
     with tempfile.TemporaryDirectory() as tmp:

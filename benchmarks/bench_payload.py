@@ -184,7 +184,7 @@ def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
 
 def part_ur10() -> None:
     print("\n== UR10 pick-and-place (polydoros_ur10_pickplace), payload at tool0; authors: 5 kg ==")
-    from mmgp.data.convert import convert
+    from mmgp.convert import convert
     from mmgp.errors import InputError
 
     try:

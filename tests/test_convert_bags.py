@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from typer.testing import CliRunner
 
 from mmgp.cli import app
-from mmgp.data.convert import convert, read_input
+from mmgp.convert import convert, read_input
 from mmgp.data.logs import read_log
 from mmgp.errors import InputError
 

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mmgp.cli import app
-from mmgp.data.convert import convert, read_input
+from mmgp.convert import convert, read_input
 from mmgp.data.logs import read_log
 from mmgp.errors import InputError
 

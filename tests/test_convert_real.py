@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 from scipy.io import loadmat
 
-from mmgp.data.convert import convert, read_input
+from mmgp.convert import convert, read_input
 from mmgp.data.differentiation import SavitzkyGolay
 from mmgp.data.logs import read_log
 from mmgp.errors import InputError

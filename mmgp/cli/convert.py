@@ -34,7 +34,7 @@ def convert(input: Path = typer.Argument(..., help="Bag (.bag, ROS 2 folder, .db
                                                "to write to a single --out file."),
             force: bool = typer.Option(False, "--force", help="Replace an existing --out.")):
     """Turn a robot recording into a contract log: t, q, tau (dq, ddq when recorded) and metadata."""
-    from ..data.convert import read_input, write_logs
+    from ..convert import read_input, write_logs
 
     start = time.perf_counter()
     try:

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ....errors import InputError
+from ...errors import InputError
 from ..base import ConvertedLog
 from ..tables import numeric_block, read_table
 from .mat_sets import estimate_row_spacing
@@ -101,7 +101,7 @@ def read_staubli(folder: Path, file: Path | None, options: dict[str, Any]) -> li
 def _tiago_torso_mass(names: list[str]) -> float:
     import pinocchio as pin
 
-    from ....physics.robot import RobotModel
+    from ...physics.robot import RobotModel
 
     model = RobotModel.from_name("tiago", names).pin_model
     data = model.createData()

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any, Callable
 
-from ....errors import InputError
+from ...errors import InputError
 from ..base import ConvertedLog
 from ..mapping import map_file
 from . import mat_sets, text_sets

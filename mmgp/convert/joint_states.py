@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ...errors import InputError
+from ..errors import InputError
 from .base import ConvertedLog
 
 
@@ -50,7 +50,7 @@ def target_joints(messages: Sequence[JointStateMessage], options: dict[str, Any]
         return list(options["joints"])
     groups = _groups(messages)
     if robot is not None and len(groups) > 1:
-        from ...physics.robot import load_robot
+        from ..physics.robot import load_robot
 
         model = set(load_robot(robot=robot).joint_names)
         hit = {k: v for k, v in groups.items() if k & model}

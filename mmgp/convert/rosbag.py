@@ -17,7 +17,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ...errors import InputError
+from ..errors import InputError
 from .base import ConvertedLog
 from .franka import FRANKA_FIELDS, franka_log, franka_source
 from .joint_states import JointStateMessage, assemble

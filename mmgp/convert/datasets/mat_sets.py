@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ....errors import InputError
+from ...errors import InputError
 from ..base import ConvertedLog
 
 IAS_FILES = {"ias_barrett": "ias_real_barrett_data.mat", "ias_sarcos": "ias_sarcos_data.mat",

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import InputError
+from ..errors import InputError
 from .base import ConvertedLog
 from .mapping import map_file, unit_factor
 from .tables import numeric_block, read_table

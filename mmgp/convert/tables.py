@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ...errors import InputError
-from ..logs import _numeric_column
+from ..errors import InputError
+from ..data.logs import _numeric_column
 
 DELIMITERS = (",", ";", "\t", " ")
 

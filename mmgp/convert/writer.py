@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from ...errors import InputError
-from ..outputs import atomic_output_dir, atomic_write_bytes, write_table
+from ..errors import InputError
+from ..data.outputs import atomic_output_dir, atomic_write_bytes, write_table
 from .base import ConvertedLog
 
 LOG_SUFFIXES = (".parquet", ".pq", ".csv")

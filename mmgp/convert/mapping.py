@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import InputError
+from ..errors import InputError
 
 KNOWN_KEYS = {"format", "delimiter", "decimal", "header", "columns", "units", "joint_names", "joints",
               "robot", "topic", "stamp", "tau_source", "current_to_torque", "dataset"}

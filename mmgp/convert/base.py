@@ -13,8 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ...errors import InputError
-from ..logs import MIN_SAMPLES, RobotLog
+from ..errors import InputError
+from ..data.logs import MIN_SAMPLES, RobotLog
 
 KINDS = ("q", "dq", "ddq", "tau")
 
@@ -160,7 +160,7 @@ def order_for_robot(log: ConvertedLog, robot: str, file: str | Path) -> Converte
     Joints the model does not have are dropped (noted). A log without joint names is taken to
     be in model order already (the model's first n joints, when those form one serial chain).
     """
-    from ...physics.robot import load_robot
+    from ..physics.robot import load_robot
 
     if log.joint_names is None:
         model = load_robot(robot=robot, n_joints=log.n_joints)

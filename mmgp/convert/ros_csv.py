@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ...errors import InputError
+from ..errors import InputError
 from .base import ConvertedLog
 from .franka import FRANKA_FIELDS, franka_log, franka_source
 from .joint_states import JointStateMessage, assemble

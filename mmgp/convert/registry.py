@@ -5,7 +5,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from ...errors import InputError
+from ..errors import InputError
 from . import datasets, mapped_csv, ros_csv, rosbag, rtde
 from .base import ConvertedLog
 from .mapping import map_file
@@ -32,7 +32,7 @@ def _recognises_contract(path: Path, options: dict[str, Any]) -> bool:
 
 
 def _read_contract(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
-    from ..logs import read_log
+    from ..data.logs import read_log
 
     log = read_log(path, min_samples=1)
     return [ConvertedLog.of(name=path.stem, t=log.t, q=log.q, tau=log.tau, dq=log.dq, ddq=log.ddq,

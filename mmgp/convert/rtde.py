@@ -20,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ...errors import InputError
+from ..errors import InputError
 from .base import ConvertedLog
 from .mapping import choice, float_list
 from .tables import header_names, indexed_columns, numeric_block, read_table
