@@ -22,7 +22,7 @@ from mmgp.config import load_config
 from mmgp.evaluation.metrics import classification_figures
 from mmgp.data.logs import read_labels
 from mmgp.models.trained import labels_frame, train
-from mmgp.sim.recording import actuator_replica
+from mmgp.sim import actuator_replica
 
 
 def main() -> int:

@@ -25,7 +25,7 @@ from mmgp.evaluation.metrics import classification_figures
 from mmgp.data.logs import read_labels
 from mmgp.models.trained import labels_frame, train
 from mmgp.physics.robot import load_robot
-from mmgp.sim.recording import panda_modes
+from mmgp.sim import panda_modes
 
 
 def main() -> int:

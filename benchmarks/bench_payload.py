@@ -30,7 +30,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mmgp.sim import recording as sim
+import mmgp.sim as sim
 from mmgp.data.logs import RobotLog, read_log
 from mmgp.physics.robot import fit_payload, load_robot, point_mass_parameters
 from mmgp.data.differentiation import SavitzkyGolay, complete_derivatives

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from mmgp.sim import recording as sim
+import mmgp.sim as sim
 from mmgp.evaluation.compare import compare, default_gap, format_compare, write_compare
 from mmgp.evaluation.metrics import normalised_mse
 from mmgp.data.logs import RobotLog

@@ -4,7 +4,7 @@ import pinocchio as pin
 import pytest
 
 from mmgp.physics import effects as fx
-from mmgp.sim.recording import panda_urdf_path, reduced_pinocchio_model, PANDA_JOINTS
+from mmgp.sim import PANDA_JOINTS, panda_urdf_path, reduced_pinocchio_model
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from mmgp.errors import InputError
 from mmgp.models.trained import TrainedModel, train
 from mmgp.models.features import resolve_mean_basis
 from mmgp.physics.robot import load_robot
-from mmgp.sim.recording import panda_modes
+from mmgp.sim import panda_modes
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 
