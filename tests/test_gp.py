@@ -254,7 +254,7 @@ def test_batched_outputs_equal_single_output_fits():
                                    atol=2e-3 * np.abs(Y[:, j]).std())
 
 
-# ---------------------------------------------------------------- scalable GP (mmgp.gp_sparse)
+# ---------------------------------------------------------------- scalable GP (mmgp.gp.sparse)
 from mmgp.gp.sparse import SparseGP, make_gp
 
 
