@@ -11,7 +11,7 @@ Models, all on the same split:
   inputs, every training sample used; hyperparameters by the exact-GP LOO objective on a
   1,000-sample random subset);
 - the alternative scalable option, "subset of data": an exact ``ExactGP`` conditioned on a random
-  3,000-sample subset, same hyperparameters (isolates the predictor; the choice in gp_sparse.py
+  3,000-sample subset, same hyperparameters (isolates the predictor; the choice in mmgp/gp/sparse.py
   rests on this comparison), and SGPR with 500 inducing inputs;
 - scikit-learn GaussianProcessRegressor, exact, ConstantKernel*RBF(ARD)+WhiteKernel, default
   optimiser, normalize_y=True, one kernel shared by the 7 outputs, on a random subset of

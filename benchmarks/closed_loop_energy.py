@@ -57,7 +57,7 @@ import mujoco
 import numpy as np
 
 import mmgp
-from mmgp.compensator.field import compensator_from_model, load_compensator
+from mmgp.compensator import compensator_from_model, load_compensator
 from mmgp.config import load_config
 from mmgp.models.trained import train
 from mmgp.physics.robot import RobotModel, load_robot

@@ -2,7 +2,8 @@
 
 References: the trained model's own prediction (torch GP, a different code path from the numpy
 evaluator of the file), finite differences of the exported storage, zero (storage lower bound),
-and, for a MuJoCo two-link arm, the closed-form gravity torque of the arm.
+the replica lever's gravity and dry-friction band, and, for a MuJoCo two-link arm, the
+closed-form gravity torque of the arm.
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 import mmgp
-from mmgp.compensator.field import check_passivity, compensator_from_model
+from mmgp.compensator import check_passivity, compensator_from_model
 from mmgp.config import load_config
 from mmgp.models.trained import train
 
@@ -40,8 +41,20 @@ def test_replica_export_matches_model(replica):
     assert 0.005 < noise < 0.05
     err = np.max(np.abs(comp.torque(q) - ref))
     assert err < 0.01 * noise, err
-    # a torque that is not the model's (a 5% scale error) must fail the same tolerance
-    assert np.max(np.abs(1.05 * ref - ref)) > 0.01 * noise
+
+
+def test_replica_export_holds_the_lever_still(replica):
+    """Physics reference: the replica lever's gravity torque is (m_load L + m_lever L / 2) g cos q
+    and its dry friction is c + beta |motor torque| (mmgp.sim.recording.REPLICA). A torque tau
+    holds the lever at rest iff |tau - gravity| <= c + beta |tau|, so the learned torque at rest
+    must lie in that band (without gravity it would leave it by up to 5x)."""
+    from mmgp.sim.recording import REPLICA as P
+
+    res, comp = replica
+    q = np.linspace(res.model.support_q_.min(), res.model.support_q_.max(), 400)
+    gravity = (P["load_mass"] * P["lever_length"] + P["lever_mass"] * P["lever_length"] / 2) * 9.81 * np.cos(q)
+    tau = comp.torque(q[:, None])[:, 0]
+    assert np.all(np.abs(tau - gravity) <= P["friction_c"] + P["friction_beta"] * np.abs(tau))
 
 
 def test_replica_storage_gradient_is_torque(replica):

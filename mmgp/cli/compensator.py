@@ -17,7 +17,7 @@ def export(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp t
            max_support: int = typer.Option(1000, "--max-support"),
            force: bool = typer.Option(False, "--force")):
     """Export the position-only passive feedforward tau_ff(q) = grad V(q) with its storage function."""
-    from ..compensator.field import check_passivity, compensator_from_model
+    from ..compensator import check_passivity, compensator_from_model
     from ..models.trained import TrainedModel
 
     try:
@@ -41,7 +41,7 @@ def check_passivity_cmd(file: Path = typer.Argument(..., help="Compensator file 
                         n_loops: int = typer.Option(50, "--loops"),
                         seed: int = typer.Option(0, "--seed")):
     """Numerically confirm grad S = tau_ff, zero work around closed loops, S bounded below."""
-    from ..compensator.field import check_passivity, load_compensator
+    from ..compensator import check_passivity, load_compensator
 
     try:
         comp = load_compensator(file)

@@ -31,7 +31,8 @@ import numpy as np
 
 from .metrics import normalised_mse
 from ..gp.exact import ExactGP
-from ..gp.hyper import default_hyper
+from ..gp.hyper import default_hyper, optimise_hyper
+from ..gp.objectives import leave_block_out
 from ..data.logs import RobotLog
 from ..data.outputs import atomic_write_bytes, jsonable
 from ..data.differentiation import SavitzkyGolay
@@ -69,15 +70,12 @@ def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: 
     ``hyper_fit``: "loo" (ExactGP's own leave-one-out) or "block" (leave-time-block-out)."""
     if hyper_fit == "loo":
         return ExactGP(**opts).fit(X, Y)
-    from ..gp.windowed import optimise_hyper_windowed
-
     k = min(len(X), int(opts.get("max_fit_points", 1000)))
     fit_idx = np.unique(np.linspace(0, len(X) - 1, k).round().astype(int))
     # Condition once on the fitting subset for its standardisation; tune in those units.
     gp = ExactGP(**opts).fit(X[fit_idx], Y[fit_idx], hyper=default_hyper(X.shape[1], Y.shape[1]), optimise=False)
-    hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, t[fit_idx], 0.5 * block_s, gp.hyper_,
-                                    max_iter=int(opts.get("max_iter", 60)),
-                                    noise_floor=float(opts.get("noise_floor", 1e-6)))
+    hyper, _ = optimise_hyper(gp.Xs_, gp.Ys_, gp.hyper_, objective=leave_block_out(t[fit_idx], block_s),
+                              max_iter=int(opts.get("max_iter", 60)), noise_floor=float(opts.get("noise_floor", 1e-6)))
     return ExactGP(**opts).fit(X, Y, hyper=hyper, optimise=False)
 
 
@@ -96,7 +94,7 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
     objective costs O(fit points^3) per iteration, the conditioning on ``max_train`` samples is
     done once per fold).
     ``hyper_fit``: how hyperparameters are chosen on the training samples: "block" (default;
-    leave-time-block-out log predictive, blocks of ``block_s`` s, :func:`mmgp.em.optimise_hyper_windowed`)
+    leave-time-block-out log predictive, blocks of ``block_s`` s, :func:`mmgp.gp.objectives.leave_block_out`)
     or "loo" (plain leave-one-out, :class:`mmgp.gp.ExactGP`). On densely logged trajectories plain
     LOO predicts each sample from its near-copies in time, picks a noise level far below the
     real one and extrapolates wildly into the unseen states of a held-out block.

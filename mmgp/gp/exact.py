@@ -13,15 +13,18 @@ The log-variance term matters: without it (as in the source dissertation) the ob
 inflating the predictive variance. The log marginal likelihood is available as an alternative.
 
 Fitting cost: L-BFGS-B (scipy) on hand-derived gradients (one K^-1 and one (N, N) product per
-evaluation, see ``_value_and_grad``), first on a small coarse subset, then on the fitting subset.
-On 2,000 real Barrett WAM samples (7 outputs, 21 inputs) this fits several times faster than
-scikit-learn's GaussianProcessRegressor at lower held-out error (benchmarks/bench_gp_speed.py).
-For more than a few thousand samples use ``mmgp.gp.sparse.make_gp`` (SGPR above 3,000).
+evaluation, see :func:`mmgp.gp.hyper.rbf_value_and_grad`), first on a small coarse subset, then on
+the fitting subset. On 2,000 real Barrett WAM samples (7 outputs, 21 inputs) this fits several
+times faster than scikit-learn's GaussianProcessRegressor at lower held-out error
+(benchmarks/bench_gp_speed.py). For more than a few thousand samples use
+``mmgp.gp.sparse.make_gp`` (SGPR above 3,000).
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
+from sklearn.base import BaseEstimator
+from sklearn.utils.validation import check_is_fitted
 
 from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets
 from .kernels import rbf_kernel
@@ -41,17 +44,69 @@ def check_xy(X, Y) -> tuple[np.ndarray, np.ndarray, bool]:
     return X, Y, vector
 
 
-def prepare_fit(est, X, Y) -> tuple[np.ndarray, np.ndarray]:
-    """Start of every GP's fit: checked float64 arrays; sets ``est``'s ``_vector_output``,
-    ``dev_`` (from ``est.device``) and the input/output standardisers."""
-    X, Y, est._vector_output = check_xy(X, Y)
-    est.dev_ = resolve_device(est.device)
-    est.x_scaler_ = Standardiser().fit(X)
-    est.y_scaler_ = Standardiser().fit(Y)
-    return X, Y
+class StandardisedRBFGP(BaseEstimator):
+    """What the exact and the sparse RBF GP share: settings, standardisation, the hyperparameter
+    procedure (:func:`mmgp.gp.hyper.fit_hyper_subsets`) and the conversions to data units.
+
+    Subclasses implement ``_condition``, ``predict`` and ``loo_predictive``.
+    """
+
+    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
+                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
+                 coarse_fit_points: int = 300):
+        self.ard = ard
+        self.objective = objective
+        self.max_fit_points = max_fit_points
+        self.max_iter = max_iter
+        self.noise_floor = noise_floor
+        self.device = device
+        self.seed = seed
+        self.coarse_fit_points = coarse_fit_points
+
+    def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
+        """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
+        ``hyper_`` (given, default or optimised) and ``objective_value_``."""
+        X, Y, self._vector_output = check_xy(X, Y)
+        self.dev_ = resolve_device(self.device)
+        self.x_scaler_ = Standardiser().fit(X)
+        self.y_scaler_ = Standardiser().fit(Y)
+        Xs = torch.as_tensor(self.x_scaler_.transform(X), dtype=DTYPE, device=self.dev_)
+        Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
+        init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
+        self.objective_value_ = float("nan")
+        if optimise:
+            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
+        self.hyper_ = init
+        self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
+        self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
+        return X, Y, Xs, Ys
+
+    def _query(self, X) -> torch.Tensor:
+        check_is_fitted(self, "hyper_")
+        return torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE,
+                               device=self.dev_)
+
+    def _data_units(self, mean_s: torch.Tensor, var_s: torch.Tensor | None):
+        """Standardised mean and variance (M, m) -> data-unit mean and std, shaped like the fit's Y."""
+        mean = mean_s.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
+        out = (lambda a: a[:, 0]) if self._vector_output else (lambda a: a)
+        if var_s is None:
+            return out(mean)
+        return out(mean), out(np.sqrt(var_s.cpu().numpy()) * self.y_scaler_.scale_)
+
+    def loo_log_predictive(self) -> float:
+        """Sum over samples and outputs of the LOO log predictive density, in data units."""
+        mean, std = self.loo_predictive()
+        Y = self._training_outputs()
+        if self._vector_output:
+            mean, std = mean[:, None], std[:, None]
+        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+
+    def _training_outputs(self) -> np.ndarray:
+        return self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
 
 
-class ExactGP:
+class ExactGP(StandardisedRBFGP):
     """Exact GP regression with an RBF kernel, one independent GP per output column.
 
     Parameters
@@ -74,28 +129,9 @@ class ExactGP:
     data units, ``objective_value_`` (per-sample objective on the fitting subset).
     """
 
-    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
-                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
-                 coarse_fit_points: int = 300):
-        self.coarse_fit_points = coarse_fit_points
-        self.ard = ard
-        self.objective = objective
-        self.max_fit_points = max_fit_points
-        self.max_iter = max_iter
-        self.noise_floor = noise_floor
-        self.device = device
-        self.seed = seed
-
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "ExactGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
-        X, Y = prepare_fit(self, X, Y)
-        Xs = torch.as_tensor(self.x_scaler_.transform(X), dtype=DTYPE, device=self.dev_)
-        Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
-        init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
-        self.objective_value_ = float("nan")
-        if optimise:
-            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
-        self.hyper_ = init
+        _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
         self._condition(Xs, Ys)
         return self
 
@@ -106,18 +142,13 @@ class ExactGP:
         self.alpha_ = torch.cholesky_solve(Ys.T.unsqueeze(-1), self.L_).squeeze(-1)  # (m, N)
         self.Xs_ = Xs
         self.Ys_ = Ys
-        self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
-        self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
-
-    def _out(self, a: np.ndarray) -> np.ndarray:
-        return a[:, 0] if self._vector_output else a
 
     def predict(self, X: np.ndarray, *, include_noise: bool = False, return_std: bool = True):
         """Posterior mean (M, m) and std (M, m) at X (M, d), in data units.
 
         ``include_noise`` adds the observation noise (predictive of a new measurement).
         """
-        Xq = torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE, device=self.dev_)
+        Xq = self._query(X)
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         mean_s, var_s = [], []
         # chunks keep each (m, N, chunk) buffer near 32 MB: prediction memory stays O(N m)
@@ -131,24 +162,10 @@ class ExactGP:
                 if include_noise:
                     var = var + sn[:, None]
                 var_s.append(var.T)
-        mean = torch.cat(mean_s).cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        if not return_std:
-            return self._out(mean)
-        std = np.sqrt(torch.cat(var_s).cpu().numpy()) * self.y_scaler_.scale_
-        return self._out(mean), self._out(std)
+        return self._data_units(torch.cat(mean_s), torch.cat(var_s) if return_std else None)
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """Leave-one-out predictive mean and std (N, m) of the training outputs (closed form)."""
-        Kinv = inverse_from_cholesky(self.L_)
-        mu, var = loo_from_inverse(Kinv, self.Ys_.T)
-        mean = mu.T.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        std = np.sqrt(var.T.cpu().numpy()) * self.y_scaler_.scale_
-        return self._out(mean), self._out(std)
-
-    def loo_log_predictive(self) -> float:
-        """Sum over samples and outputs of the LOO log predictive density, in data units."""
-        mean, std = self.loo_predictive()
-        Y = self.Ys_.T.cpu().numpy().T * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        if self._vector_output:
-            mean, std = mean[:, None], std[:, None]
-        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+        check_is_fitted(self, "hyper_")
+        mu, var = loo_from_inverse(inverse_from_cholesky(self.L_), self.Ys_.T)
+        return self._data_units(mu.T, var.T)

@@ -35,10 +35,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .exact import ExactGP, prepare_fit
-from .hyper import Hyper, default_hyper, fit_hyper_subsets
+from sklearn.utils.validation import check_is_fitted
+
+from .exact import ExactGP, StandardisedRBFGP
+from .hyper import Hyper
 from .kernels import rbf_kernel
-from .linalg import DTYPE, LOG_2PI, robust_cholesky
+from .linalg import DTYPE, robust_cholesky
 
 
 def kmeans_inducing(Xs: np.ndarray, n_inducing: int, seed: int = 0) -> np.ndarray:
@@ -56,14 +58,14 @@ def kmeans_inducing(Xs: np.ndarray, n_inducing: int, seed: int = 0) -> np.ndarra
     return np.unique(km.cluster_centers_, axis=0)
 
 
-class SparseGP:
+class SparseGP(StandardisedRBFGP):
     """SGPR with k-means inducing inputs; the ``ExactGP`` API for large N.
 
     Parameters: as ``ExactGP`` (ard, objective, max_fit_points, max_iter, noise_floor, device,
     seed, coarse_fit_points), plus ``n_inducing`` (M, default 1000; cost O(N M^2 m)), ``method``
     ("sgpr", default, or "subset": an ``ExactGP`` conditioned on ``n_subset`` random samples,
-    exposed as ``exact_`` with the rows in ``subset_``; its hyperparameters come from the full
-    data's scaling, applied to the subset's).
+    exposed as ``exact_`` with the rows in ``subset_``; it standardises the subset itself and
+    takes the hyperparameters, in standardised units, from the fit on the full data).
 
     Learned: ``hyper_`` (standardised units, same meaning as ExactGP's), ``Z_`` (M, d)
     standardised inducing inputs, ``lengthscale_`` (m, d) and ``noise_std_`` (m,) in data units,
@@ -74,8 +76,7 @@ class SparseGP:
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
                  coarse_fit_points: int = 300, n_inducing: int = 1000, method: str = "sgpr",
                  n_subset: int = 3000):
-        # The exact GP's settings mean the same here (its hyperparameter procedure is shared).
-        ExactGP.__init__(self, ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
+        super().__init__(ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
                          noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points)
         self.method = method
         self.n_subset = n_subset
@@ -83,28 +84,18 @@ class SparseGP:
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "SparseGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
-        X, Y = prepare_fit(self, X, Y)
-        Xn = self.x_scaler_.transform(X)
-        Xs = torch.as_tensor(Xn, dtype=DTYPE, device=self.dev_)
-        Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
-        init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
-        self.objective_value_ = float("nan")
-        if optimise:
-            # Same procedure as ExactGP: the exact GP's hyperparameters on a subset.
-            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
-        self.hyper_ = init
+        if self.method not in ("sgpr", "subset"):
+            raise ValueError(f"method must be 'sgpr' or 'subset', got {self.method!r}")
+        # Same procedure as ExactGP: the exact GP's hyperparameters on a subset.
+        X, Y, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
         if self.method == "subset":
             rng = np.random.default_rng(self.seed + 1)
             self.subset_ = np.sort(rng.choice(len(X), min(self.n_subset, len(X)), replace=False))
             self.exact_ = ExactGP(device=self.device).fit(X[self.subset_], Y[self.subset_], hyper=self.hyper_,
                                                           optimise=False)
             self._X, self._Y = X, Y
-            self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
-            self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
             return self
-        if self.method != "sgpr":
-            raise ValueError(f"method must be 'sgpr' or 'subset', got {self.method!r}")
-        self.Z_ = kmeans_inducing(Xn, self.n_inducing, self.seed)
+        self.Z_ = kmeans_inducing(Xs.cpu().numpy(), self.n_inducing, self.seed)
         self._condition(Xs, Ys)
         return self
 
@@ -139,17 +130,12 @@ class SparseGP:
             self.jitter_ = max(self.jitter_, jit, jit_b)
         self._loo_s = (torch.stack(loo_mean, 1), torch.stack(loo_var, 1))  # standardised (N, m)
         self.Ys_ = Ys
-        self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
-        self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
-
-    def _out(self, a: np.ndarray) -> np.ndarray:
-        return a[:, 0] if self._vector_output else a
 
     def predict(self, X: np.ndarray, *, include_noise: bool = False, return_std: bool = True):
         """Posterior mean (M, m) and std (M, m) at X (M, d), in data units (SGPR predictive)."""
+        Xq = self._query(X)
         if self.method == "subset":
-            return self.exact_.predict(X, include_noise=include_noise, return_std=return_std)
-        Xq = torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE, device=self.dev_)
+            return self._subset_shape(self.exact_.predict(X, include_noise=include_noise, return_std=return_std))
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         Z = torch.as_tensor(self.Z_, dtype=DTYPE, device=self.dev_)
         means, vars_ = [], []
@@ -167,11 +153,7 @@ class SparseGP:
             means.append(torch.cat(m_j))
             if return_std:
                 vars_.append(torch.cat(v_j))
-        mean = torch.stack(means, 1).cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        if not return_std:
-            return self._out(mean)
-        std = np.sqrt(torch.stack(vars_, 1).cpu().numpy()) * self.y_scaler_.scale_
-        return self._out(mean), self._out(std)
+        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1) if return_std else None)
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """LOO mean and std (N, m) of the training outputs.
@@ -180,24 +162,23 @@ class SparseGP:
         the rows in the conditioning subset; the other rows are not conditioned on, so their
         ordinary predictive (with noise) already leaves them out.
         """
+        check_is_fitted(self, "hyper_")
         if self.method == "subset":
             mean, std = self.exact_.predict(self._X, include_noise=True)
             lm, ls = self.exact_.loo_predictive()
             mean, std = np.array(mean), np.array(std)
             mean[self.subset_], std[self.subset_] = lm, ls
-            return mean, std
-        mu, var = self._loo_s
-        mean = mu.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        std = np.sqrt(var.cpu().numpy()) * self.y_scaler_.scale_
-        return self._out(mean), self._out(std)
+            return self._subset_shape((mean, std))
+        return self._data_units(*self._loo_s)
 
-    def loo_log_predictive(self) -> float:
-        """Sum over samples and outputs of the (DTC-model) LOO log predictive density, in data units."""
-        mean, std = self.loo_predictive()
-        Y = self._Y if self.method == "subset" else self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        if self._vector_output:
-            mean, std = mean[:, None], std[:, None]
-        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+    def _subset_shape(self, arrays):
+        # exact_ was fitted on 2-D outputs; give vectors back where the fit got a vector
+        if not self._vector_output:
+            return arrays
+        return arrays[:, 0] if isinstance(arrays, np.ndarray) else tuple(a[:, 0] for a in arrays)
+
+    def _training_outputs(self) -> np.ndarray:
+        return self._Y if self.method == "subset" else super()._training_outputs()
 
 
 _SPARSE_ONLY = ("n_inducing", "method", "n_subset")

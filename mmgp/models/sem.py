@@ -40,9 +40,10 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..gp.exact import ExactGP
-from ..gp.hyper import Hyper, default_hyper
+from ..gp.hyper import Hyper, default_hyper, optimise_hyper
 from ..gp.linalg import LOG_2PI
-from ..gp.windowed import optimise_hyper_windowed, windowed_predictive
+from ..gp.objectives import leave_block_out
+from ..gp.windowed import windowed_predictive
 from .hmm import (_transition_counts, ffbs_sample, forward_backward, gibbs_sweep, sequence_log_prior,
                   transition_matrix)
 from .robust import basis_rank, fit_basis_coefficients, fit_shared_coefficients
@@ -165,8 +166,8 @@ class MultimodalSEM:
             # Warm-started refits on long logs (where refits dominate the cost) get half the
             # iterations of the first fit.
             iters = self.fit_iter if (hyper is None or T <= 2000) else max(10, self.fit_iter // 2)
-            hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, self._t_axis[fit_idx], self.block_s / 2.0,
-                                            gp.hyper_, max_iter=iters)
+            hyper, _ = optimise_hyper(gp.Xs_, gp.Ys_, gp.hyper_, max_iter=iters,
+                                      objective=leave_block_out(self._t_axis[fit_idx], self.block_s))
             optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
         T, n = Y.shape
