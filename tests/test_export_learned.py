@@ -45,10 +45,10 @@ def test_replica_export_matches_model(replica):
 
 def test_replica_export_holds_the_lever_still(replica):
     """Physics reference: the replica lever's gravity torque is (m_load L + m_lever L / 2) g cos q
-    and its dry friction is c + beta |motor torque| (mmgp.sim.recording.REPLICA). A torque tau
+    and its dry friction is c + beta |motor torque| (mmgp.sim.REPLICA). A torque tau
     holds the lever at rest iff |tau - gravity| <= c + beta |tau|, so the learned torque at rest
     must lie in that band (without gravity it would leave it by up to 5x)."""
-    from mmgp.sim.recording import REPLICA as P
+    from mmgp.sim import REPLICA as P
 
     res, comp = replica
     q = np.linspace(res.model.support_q_.min(), res.model.support_q_.max(), 400)
@@ -101,7 +101,7 @@ def _arm_gravity(q):
 def test_two_joint_learned_export_is_passive(tmp_path):
     import mujoco
 
-    from mmgp.sim.recording import simulate
+    from mmgp.sim import simulate
 
     model = mujoco.MjModel.from_xml_string(_arm_xml())
     w, a, c = 2 * np.pi / np.array([13.0, 7.0]), np.array([0.9, 1.0]), np.array([0.3, -0.4])
