@@ -1,0 +1,97 @@
+"""Running the fleet's tasks: in this process one after another, or as Ray tasks.
+
+Ray runs locally by default (``ray.init(num_cpus=workers)``: one task per core), or on the
+cluster at ``address``; a session this process already opened is reused and left open. Every
+task gets one CPU and runs its numerics on one thread (:data:`mmgp.fleet.work.THREAD_ENV` in the
+task's environment, plus :func:`mmgp.fleet.work.single_threaded` inside it).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+from typing import Callable, Iterator, Sequence
+
+from .work import THREAD_ENV, blank_outcome, process_log
+
+RAY_MISSING = ("mmgp fleet runs its tasks on Ray, which is not installed: pip install 'mmgp[fleet]' "
+               "(or pip install ray), or run the logs one after another with --serial")
+
+Progress = Callable[[int, int, dict], None]
+
+
+class RayMissingError(ImportError):
+    """Ray is needed (the ``fleet`` extra) but not installed."""
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise RayMissingError(RAY_MISSING) from None
+    return ray
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity mask where the OS has one)."""
+    with contextlib.suppress(AttributeError):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def run_serial(jobs: Sequence[dict], progress: Progress | None = None) -> list[dict]:
+    """Every job in this process, in order (the reference the Ray engine is measured against)."""
+    outcomes = []
+    for job in jobs:
+        outcomes.append(process_log(job))
+        if progress is not None:
+            progress(len(outcomes), len(jobs), outcomes[-1])
+    return outcomes
+
+
+@contextlib.contextmanager
+def ray_session(address: str | None, workers: int | None) -> Iterator:
+    """A connected Ray: the one already open, else a new local instance (``workers`` CPUs) or
+    a connection to the cluster at ``address``, shut down afterwards."""
+    ray = import_ray()
+    if ray.is_initialized():
+        yield ray
+        return
+    kwargs = {"include_dashboard": False, "log_to_driver": False}
+    if address is None:
+        kwargs["num_cpus"] = workers or available_cores()
+    ray.init(address=address, **kwargs)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def _collect(ray, ref, job: dict) -> dict:
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayError as exc:  # the worker died (memory, signal): no outcome came back
+        return blank_outcome(job, error=f"task failed ({type(exc).__name__}): {exc}")
+
+
+def run_ray(jobs: Sequence[dict], *, address: str | None = None, workers: int | None = None,
+            progress: Progress | None = None) -> list[dict]:
+    """Every job as a Ray task (one CPU each); at most ``workers`` in flight when given.
+    Outcomes come back in the order of ``jobs``."""
+    with ray_session(address, workers) as ray:
+        task = ray.remote(num_cpus=1, runtime_env={"env_vars": dict(THREAD_ENV)})(process_log)
+        limit = workers or len(jobs)
+        outcomes: list = [None] * len(jobs)
+        pending: dict = {}
+        submitted = finished = 0
+        while submitted < len(jobs) or pending:
+            while submitted < len(jobs) and len(pending) < limit:
+                pending[task.remote(jobs[submitted])] = submitted
+                submitted += 1
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                i = pending.pop(ref)
+                outcomes[i] = _collect(ray, ref, jobs[i])
+                finished += 1
+                if progress is not None:
+                    progress(finished, len(jobs), outcomes[i])
+        return outcomes
