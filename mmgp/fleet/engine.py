@@ -16,6 +16,9 @@ from .work import THREAD_ENV, blank_outcome, process_log
 RAY_MISSING = ("mmgp fleet runs its tasks on Ray, which is not installed: pip install 'mmgp[fleet]' "
                "(or pip install ray), or run the logs one after another with --serial")
 
+#: every task: one CPU of Ray's budget, and one-thread numerics from the worker's start
+TASK_OPTIONS = {"num_cpus": 1, "runtime_env": {"env_vars": dict(THREAD_ENV)}}
+
 Progress = Callable[[int, int, dict], None]
 
 
@@ -78,7 +81,7 @@ def run_ray(jobs: Sequence[dict], *, address: str | None = None, workers: int | 
     """Every job as a Ray task (one CPU each); at most ``workers`` in flight when given.
     Outcomes come back in the order of ``jobs``."""
     with ray_session(address, workers) as ray:
-        task = ray.remote(num_cpus=1, runtime_env={"env_vars": dict(THREAD_ENV)})(process_log)
+        task = ray.remote(**TASK_OPTIONS)(process_log)
         limit = workers or len(jobs)
         outcomes: list = [None] * len(jobs)
         pending: dict = {}

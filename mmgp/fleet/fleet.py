@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import json
+import math
 import re
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Sequence
 
@@ -40,6 +42,10 @@ def expand_logs(items: Sequence[str | Path]) -> list[Path]:
     if not paths:
         raise InputError("no logs given")
     return paths
+
+
+def _iso(seconds: float) -> str | None:
+    return datetime.fromtimestamp(seconds, tz=timezone.utc).isoformat() if math.isfinite(seconds) else None
 
 
 def _folder_names(logs: list[str]) -> dict[str, str]:
@@ -125,7 +131,7 @@ class Fleet(BaseEstimator):
         workers = 1 if self.engine == "serial" else (self.workers or (available_cores() if self.address is None
                                                                        else None))
         logs = [{"log": o["log"], "folder": f"logs/{folders[o['log']]}", "robot": o["robot"],
-                 "log_time": o["log_time"], "log_time_source": o["log_time_source"],
+                 "log_time": _iso(o["log_time"]), "log_time_source": o["log_time_source"],
                  "n_findings": None if o["findings"] is None else len(o["findings"]),
                  "error": o["error"], "seconds": o["seconds"]} for o in self.outcomes_]
         return {"engine": self.engine, "address": self.address, "workers": workers, "seconds": self.seconds_,
