@@ -1,6 +1,6 @@
 """mmgp fleet: Ray tasks per log, the aggregated table, drift flags, bad logs, the command.
 
-Logs are a 1-DOF pendulum written here: torque = Pinocchio's inverse dynamics of the URDF below
+Logs are a 1-DOF lever written here: torque = Pinocchio's inverse dynamics of the URDF below
 plus a planted Coulomb friction tau_c * tanh(dq / 0.02) and noise. The references are the
 diagnosis called directly, log by log, and drift series built by hand.
 """
@@ -25,28 +25,16 @@ from mmgp.fleet.drift import flag_drift
 from mmgp.fleet.engine import TASK_OPTIONS, RayMissingError, import_ray
 from mmgp.fleet.table import finding_rows
 from mmgp.physics.robot import RobotModel
+from mmgp.sim.concealed import ACTUATOR_URDF
 
 
-URDF = """<?xml version="1.0"?>
-<robot name="pendulum">
-  <link name="base"/>
-  <joint name="swing" type="revolute">
-    <parent link="base"/><child link="arm"/>
-    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 1 0"/>
-    <limit lower="-3" upper="3" effort="50" velocity="10"/>
-  </joint>
-  <link name="arm">
-    <inertial><origin xyz="0.2 0 0"/><mass value="1.0"/>
-      <inertia ixx="0.001" iyy="0.004" izz="0.004" ixy="0" ixz="0" iyz="0"/></inertial>
-  </link>
-</robot>
-"""
+URDF = ACTUATOR_URDF  # the 1-DOF lever of mmgp.sim (0.73 kg at 0.2 m), written beside the logs
 FAST = {"gp": False}  # the third (GP) stage does not change findings; it costs seconds per log
 TIMES = ["2026-01-01T08:00:00Z", "2026-01-02T08:00:00Z", "2026-01-03T08:00:00Z"]
 runner = CliRunner()
 
 
-def pendulum_frame(robot, seed: int, tau_c: float, n: int = 1200) -> pd.DataFrame:
+def lever_frame(robot, seed: int, tau_c: float, n: int = 1200) -> pd.DataFrame:
     rng = np.random.default_rng(seed)
     t = np.arange(n) / 200.0
     w = np.array([0.9, 2.3]) * (1 + 0.1 * rng.standard_normal(2))
@@ -58,12 +46,12 @@ def pendulum_frame(robot, seed: int, tau_c: float, n: int = 1200) -> pd.DataFram
     return pd.DataFrame({"t": t, "q_0": q[:, 0], "dq_0": dq[:, 0], "ddq_0": ddq[:, 0], "tau_0": tau[:, 0]})
 
 
-def write_pendulum_log(folder, name: str, seed: int, tau_c: float, log_time: str | None = None, n: int = 1200):
-    robot = RobotModel.from_urdf(folder / "pendulum.urdf")
-    meta = {"urdf": "pendulum.urdf", "joint_names": json.dumps(["swing"])}
+def write_lever_log(folder, name: str, seed: int, tau_c: float, log_time: str | None = None, n: int = 1200):
+    robot = RobotModel.from_urdf(folder / "lever.urdf")
+    meta = {"urdf": "lever.urdf", "joint_names": json.dumps(["lever_joint"])}
     if log_time is not None:
         meta["log_time"] = log_time
-    write_table(folder / name, pendulum_frame(robot, seed, tau_c, n), metadata=meta)
+    write_table(folder / name, lever_frame(robot, seed, tau_c, n), metadata=meta)
     return folder / name
 
 
@@ -77,12 +65,12 @@ def local_ray():
 @pytest.fixture(scope="module")
 def fleet_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("fleet")
-    (d / "pendulum.urdf").write_text(URDF)
+    (d / "lever.urdf").write_text(URDF)
     for i, (tau_c, when) in enumerate(zip([0.2, 0.2, 0.5], TIMES)):
-        write_pendulum_log(d, f"log{i}.parquet", seed=i, tau_c=tau_c, log_time=when)
+        write_lever_log(d, f"log{i}.parquet", seed=i, tau_c=tau_c, log_time=when)
     # bad input: a log without its torque column (and without a log_time: its mtime orders it)
     write_table(d / "no_torque.parquet", pd.DataFrame({"t": np.arange(300) / 200.0, "q_0": np.zeros(300)}),
-                metadata={"urdf": "pendulum.urdf"})
+                metadata={"urdf": "lever.urdf"})
     write_table(d / "log0_labels.parquet", pd.DataFrame({"t": [0.0], "disturbed": [0]}))  # not a log
     return d
 
@@ -94,8 +82,8 @@ def ray_fleet(local_ray, fleet_dir):
 
 def direct_rows(path) -> list[tuple]:
     """Rows the table must hold for one log, from the diagnosis called here: value, value -+ 2 std."""
-    robot = RobotModel.from_urdf(path.parent / "pendulum.urdf", ["swing"])
-    res = diagnose(complete_derivatives(read_log(path, n_joints=1, joint_names=["swing"])), robot, config=FAST)
+    robot = RobotModel.from_urdf(path.parent / "lever.urdf", ["lever_joint"])
+    res = diagnose(complete_derivatives(read_log(path, n_joints=1, joint_names=["lever_joint"])), robot, config=FAST)
     rows = []
     for f in res.findings:
         std = f["evidence"]["params_std"]
@@ -115,7 +103,7 @@ def test_ray_table_matches_the_diagnosis_called_directly(ray_fleet, fleet_dir):
         path = fleet_dir / f"log{i}.parquet"
         got = table[table["log"] == str(path)]
         assert (got["log_time"] == pd.Timestamp(TIMES[i])).all()
-        assert (got["robot"] == "pendulum").all() and got["error"].isna().all()
+        assert (got["robot"] == "lever").all() and got["error"].isna().all()
         expected = direct_rows(path)
         assert expected, "the planted friction must be found"
         assert len(got) == len(expected)
@@ -213,8 +201,8 @@ def test_tasks_run_single_threaded(local_ray):
 
 
 def test_command_writes_table_trends_and_errors(local_ray, tmp_path):
-    (tmp_path / "pendulum.urdf").write_text(URDF)
-    good = write_pendulum_log(tmp_path, "good.parquet", seed=7, tau_c=0.3, log_time="2026-02-01T00:00:00", n=800)
+    (tmp_path / "lever.urdf").write_text(URDF)
+    good = write_lever_log(tmp_path, "good.parquet", seed=7, tau_c=0.3, log_time="2026-02-01T00:00:00", n=800)
     bad = tmp_path / "missing.parquet"
     out = tmp_path / "out"
     res = runner.invoke(app, ["fleet", str(good), str(bad), "--out", str(out), "--workers", "1"])
@@ -238,8 +226,8 @@ def test_command_writes_table_trends_and_errors(local_ray, tmp_path):
 def test_training_in_the_fleet(tmp_path):
     from mmgp.models.trained import TrainedModel
 
-    (tmp_path / "pendulum.urdf").write_text(URDF)
-    log = write_pendulum_log(tmp_path, "a.parquet", seed=3, tau_c=0.2, n=600)
+    (tmp_path / "lever.urdf").write_text(URDF)
+    log = write_lever_log(tmp_path, "a.parquet", seed=3, tau_c=0.2, n=600)
     quick = {"max_sweeps": 2, "min_sweeps": 1, "average_last": 1, "fit_iter": 5, "max_support": 150,
              "final_support": 150, "fit_points": 150}
     fleet = Fleet(engine="serial", train=True, diagnosis_settings=FAST, train_settings=quick).fit([log])
@@ -264,8 +252,8 @@ def test_missing_ray_is_explained(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
     with pytest.raises(RayMissingError, match=r"mmgp\[fleet\]"):
         import_ray()
-    (tmp_path / "pendulum.urdf").write_text(URDF)
-    log = write_pendulum_log(tmp_path, "a.parquet", seed=1, tau_c=0.2, n=400)
+    (tmp_path / "lever.urdf").write_text(URDF)
+    log = write_lever_log(tmp_path, "a.parquet", seed=1, tau_c=0.2, n=400)
     res = runner.invoke(app, ["fleet", str(log), "--out", str(tmp_path / "out")])
     assert res.exit_code == 1 and "pip install 'mmgp[fleet]'" in res.output
     assert not (tmp_path / "out").exists()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from typing import Callable, Iterator, Sequence
 
 from .work import THREAD_ENV, blank_outcome, process_log
@@ -77,10 +78,14 @@ def _collect(ray, ref, job: dict) -> dict:
 
 
 def run_ray(jobs: Sequence[dict], *, address: str | None = None, workers: int | None = None,
-            progress: Progress | None = None) -> list[dict]:
+            progress: Progress | None = None, timings: dict | None = None) -> list[dict]:
     """Every job as a Ray task (one CPU each); at most ``workers`` in flight when given.
-    Outcomes come back in the order of ``jobs``."""
+    Outcomes come back in the order of ``jobs``; ``timings`` (a dict) receives ``ray_start_s``,
+    the seconds it took to start or join Ray."""
+    t0 = time.perf_counter()
     with ray_session(address, workers) as ray:
+        if timings is not None:
+            timings["ray_start_s"] = time.perf_counter() - t0
         task = ray.remote(**TASK_OPTIONS)(process_log)
         limit = workers or len(jobs)
         outcomes: list = [None] * len(jobs)

@@ -74,7 +74,7 @@ class Fleet(BaseEstimator):
 
     Learned: ``logs_`` (paths), ``outcomes_`` (per log: findings, errors, seconds), ``table_``
     (the fleet table, see :mod:`mmgp.fleet.table`, with ``drift``), ``drift_`` (drift.json),
-    ``seconds_`` (wall time of the tasks).
+    ``seconds_`` (wall time of the run, Ray's start included), ``timings_`` (``ray_start_s``).
     """
 
     def __init__(self, robot: str | None = None, urdf: str | Path | None = None, train: bool = False,
@@ -112,10 +112,12 @@ class Fleet(BaseEstimator):
         self.logs_ = expand_logs(logs)
         jobs = [self._job(p) for p in self.logs_]
         t0 = time.perf_counter()
+        self.timings_ = {}
         if self.engine == "serial":
             self.outcomes_ = run_serial(jobs, progress)
         else:
-            self.outcomes_ = run_ray(jobs, address=self.address, workers=self.workers, progress=progress)
+            self.outcomes_ = run_ray(jobs, address=self.address, workers=self.workers, progress=progress,
+                                     timings=self.timings_)
         self.seconds_ = time.perf_counter() - t0
         self.table_, self.drift_ = flag_drift(fleet_table(self.outcomes_), int(self.baseline))
         return self
@@ -135,6 +137,7 @@ class Fleet(BaseEstimator):
                  "n_findings": None if o["findings"] is None else len(o["findings"]),
                  "error": o["error"], "seconds": o["seconds"]} for o in self.outcomes_]
         return {"engine": self.engine, "address": self.address, "workers": workers, "seconds": self.seconds_,
+                "ray_start_seconds": self.timings_.get("ray_start_s"),
                 "n_logs": len(logs), "n_failed": sum(o["error"] is not None for o in self.outcomes_), "logs": logs}
 
     def write(self, out_dir) -> Path:
