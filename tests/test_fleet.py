@@ -12,7 +12,6 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-import ray  # the fleet extra; the test extra installs it
 from typer.testing import CliRunner
 
 from mmgp.cli import app
@@ -22,13 +21,14 @@ from mmgp.data.outputs import write_table
 from mmgp.diagnosis.pipeline import diagnose
 from mmgp.fleet import Fleet, expand_logs
 from mmgp.fleet.drift import flag_drift
-from mmgp.fleet.engine import TASK_OPTIONS, RayMissingError, import_ray
+from mmgp.fleet.engine import JOINED_TASK_OPTIONS, RayMissingError, import_ray, ray_session
 from mmgp.fleet.table import finding_rows
 from mmgp.physics.robot import RobotModel
 from mmgp.sim.concealed import ACTUATOR_URDF
 
 
 URDF = ACTUATOR_URDF  # the 1-DOF lever of mmgp.sim (0.73 kg at 0.2 m), written beside the logs
+before_blas = os.environ.get("OPENBLAS_NUM_THREADS")  # set here only while the fleet starts Ray
 FAST = {"gp": False}  # the third (GP) stage does not change findings; it costs seconds per log
 TIMES = ["2026-01-01T08:00:00Z", "2026-01-02T08:00:00Z", "2026-01-03T08:00:00Z"]
 runner = CliRunner()
@@ -57,9 +57,9 @@ def write_lever_log(folder, name: str, seed: int, tau_c: float, log_time: str | 
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
+    """One local Ray for the module, started as the fleet starts it; the fleets join it."""
+    with ray_session(address=None, workers=1) as (session, options):
+        yield session, options
 
 
 @pytest.fixture(scope="module")
@@ -196,8 +196,12 @@ def test_tasks_run_single_threaded(local_ray):
             inside = (torch.get_num_threads(), sorted({p["num_threads"] for p in threadpool_info()}))
         return os.environ.get("OMP_NUM_THREADS"), os.environ.get("OPENBLAS_NUM_THREADS"), inside
 
-    omp, blas, (torch_threads, pools) = ray.get(ray.remote(**TASK_OPTIONS)(threads).remote())
-    assert (omp, blas, torch_threads, pools) == ("1", "1", 1, [1])
+    session, options = local_ray
+    # the workers of a Ray started here inherit the variables; a joined session gets them per task
+    for opts in (options, JOINED_TASK_OPTIONS):
+        omp, blas, (torch_threads, pools) = session.get(session.remote(**opts)(threads).remote())
+        assert (omp, blas, torch_threads, pools) == ("1", "1", 1, [1])
+    assert os.environ.get("OPENBLAS_NUM_THREADS") == before_blas  # this process's own setting is back
 
 
 def test_command_writes_table_trends_and_errors(local_ray, tmp_path):

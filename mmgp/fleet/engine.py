@@ -2,8 +2,12 @@
 
 Ray runs locally by default (``ray.init(num_cpus=workers)``: one task per core), or on the
 cluster at ``address``; a session this process already opened is reused and left open. Every
-task gets one CPU and runs its numerics on one thread (:data:`mmgp.fleet.work.THREAD_ENV` in the
-task's environment, plus :func:`mmgp.fleet.work.single_threaded` inside it).
+task gets one CPU and runs its numerics on one thread: :data:`mmgp.fleet.work.THREAD_ENV` is in
+every worker's environment from its start, and :func:`mmgp.fleet.work.single_threaded` holds
+inside the task. A local Ray started here inherits those variables from this process (set only
+while Ray starts), so the workers Ray starts in advance serve the tasks; a cluster, or a session
+opened elsewhere, gets them as the tasks' ``runtime_env`` (Ray then starts workers for that
+environment: about 5 s more on a busy 2-core machine, measured).
 """
 from __future__ import annotations
 
@@ -17,8 +21,10 @@ from .work import THREAD_ENV, blank_outcome, process_log
 RAY_MISSING = ("mmgp fleet runs its tasks on Ray, which is not installed: pip install 'mmgp[fleet]' "
                "(or pip install ray), or run the logs one after another with --serial")
 
-#: every task: one CPU of Ray's budget, and one-thread numerics from the worker's start
-TASK_OPTIONS = {"num_cpus": 1, "runtime_env": {"env_vars": dict(THREAD_ENV)}}
+#: every task takes one CPU of Ray's budget
+TASK_OPTIONS = {"num_cpus": 1}
+#: the task options where the workers do not inherit THREAD_ENV (a cluster, a session opened elsewhere)
+JOINED_TASK_OPTIONS = dict(TASK_OPTIONS, runtime_env={"env_vars": dict(THREAD_ENV)})
 
 Progress = Callable[[int, int, dict], None]
 
@@ -53,19 +59,36 @@ def run_serial(jobs: Sequence[dict], progress: Progress | None = None) -> list[d
 
 
 @contextlib.contextmanager
-def ray_session(address: str | None, workers: int | None) -> Iterator:
-    """A connected Ray: the one already open, else a new local instance (``workers`` CPUs) or
-    a connection to the cluster at ``address``, shut down afterwards."""
+def _environ(values: dict) -> Iterator[None]:
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextlib.contextmanager
+def ray_session(address: str | None, workers: int | None) -> Iterator[tuple]:
+    """``(ray, task_options)``: the Ray session already open, else a new local instance
+    (``workers`` CPUs) or a connection to the cluster at ``address``, shut down afterwards; and
+    the options that give its tasks one CPU and one thread each."""
     ray = import_ray()
     if ray.is_initialized():
-        yield ray
+        yield ray, JOINED_TASK_OPTIONS
         return
     kwargs = {"include_dashboard": False, "log_to_driver": False}
     if address is None:
-        kwargs["num_cpus"] = workers or available_cores()
-    ray.init(address=address, **kwargs)
+        with _environ(THREAD_ENV):
+            ray.init(num_cpus=workers or available_cores(), **kwargs)
+    else:
+        ray.init(address=address, **kwargs)
     try:
-        yield ray
+        yield ray, TASK_OPTIONS if address is None else JOINED_TASK_OPTIONS
     finally:
         ray.shutdown()
 
@@ -83,10 +106,10 @@ def run_ray(jobs: Sequence[dict], *, address: str | None = None, workers: int | 
     Outcomes come back in the order of ``jobs``; ``timings`` (a dict) receives ``ray_start_s``,
     the seconds it took to start or join Ray."""
     t0 = time.perf_counter()
-    with ray_session(address, workers) as ray:
+    with ray_session(address, workers) as (ray, options):
         if timings is not None:
             timings["ray_start_s"] = time.perf_counter() - t0
-        task = ray.remote(**TASK_OPTIONS)(process_log)
+        task = ray.remote(**options)(process_log)
         limit = workers or len(jobs)
         outcomes: list = [None] * len(jobs)
         pending: dict = {}
