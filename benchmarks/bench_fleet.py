@@ -80,7 +80,8 @@ def drift_check(out: Path, n_logs: int, start: int) -> dict:
 def compare_tables(a: Path, b: Path) -> float:
     """Largest difference between the two runs' parameter values (same logs, same findings?)."""
     ta, tb = (pd.read_parquet(p / "fleet.parquet").sort_values(["log", "effect", "joint", "param"]) for p in (a, b))
-    if list(ta[["log", "effect", "param"]].itertuples(index=False)) != list(tb[["log", "effect", "param"]].itertuples(index=False)):
+    keys = ["log", "effect", "param"]
+    if not ta[keys].reset_index(drop=True).equals(tb[keys].reset_index(drop=True)):
         return float("inf")
     return float(np.nanmax(np.abs(ta["value"].to_numpy() - tb["value"].to_numpy())))
 
@@ -112,6 +113,8 @@ def main() -> None:
         print(f"Ray, {workers} workers: {on_ray:.1f} s wall ({runs['ray']['seconds']:.1f} s in the fleet's run, "
               f"of which {runs['ray']['ray_start_seconds']:.1f} s starting Ray)")
         print(f"speed-up (serial / Ray, wall): {serial / on_ray:.2f}x")
+        med = {k: float(np.median([lg["seconds"] for lg in r["logs"]])) for k, r in runs.items()}
+        print(f"median seconds per log inside its task: serial {med['serial']:.2f}, Ray {med['ray']:.2f}")
         print(f"largest difference between the two tables' values: {compare_tables(tmp / 'serial', tmp / 'ray'):.3g}")
         check = drift_check(tmp / "ray", args.logs, args.start)
         print(f"\ndrift (Ray run): baseline interval {check['baseline']}")

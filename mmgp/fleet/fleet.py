@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Sequence
 
 from sklearn.base import BaseEstimator
+from sklearn.exceptions import NotFittedError
 
 from ..data.outputs import atomic_write_bytes, jsonable, write_table
 from ..errors import InputError
@@ -124,7 +125,7 @@ class Fleet(BaseEstimator):
 
     def _fitted(self) -> None:
         if not hasattr(self, "table_"):
-            raise RuntimeError("this Fleet has not run yet: call fit(logs) first")
+            raise NotFittedError("this Fleet has not run yet: call fit(logs) first")
 
     def summary(self) -> dict:
         """Run-level facts: engine, workers, wall time, and per log its time, status and seconds."""

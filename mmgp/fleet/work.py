@@ -139,17 +139,19 @@ def _process(path: Path, job: dict, out: dict) -> None:
 
 def blank_outcome(job: dict, error: str | None = None) -> dict:
     """The outcome of a job before it runs (or of one whose task never returned: ``error``)."""
-    out = {"log": str(job.get("name", job["path"])), "robot": job.get("robot"), "log_time": float("nan"), "log_time_source": None,
-           "findings": None, "diagnosis": None, "training": None, "error": error, "seconds": 0.0}
+    out = {"log": str(job.get("name", job["path"])), "robot": job.get("robot"), "log_time": float("nan"),
+           "log_time_source": None, "findings": None, "diagnosis": None, "training": None, "error": error,
+           "seconds": 0.0}
     if error is not None:
         out["log_time"], out["log_time_source"] = _mtime(Path(job["path"]))
     return out
 
 
 def process_log(job: dict) -> dict:
-    """One fleet task. ``job``: ``path`` (str, absolute), ``name`` (the log as the user gave it), the fleet's ``robot``, ``urdf``, ``train``,
-    ``diagnosis_settings``, ``train_settings``. Never raises: a log that fails is returned with
-    ``error`` (the message; an unexpected failure also carries its traceback in ``traceback``)."""
+    """One fleet task. ``job``: ``path`` (str, absolute), ``name`` (the log as the user gave it),
+    the fleet's ``robot``, ``urdf``, ``train``, ``diagnosis_settings``, ``train_settings``. Never
+    raises: a log that fails is returned with ``error`` (the message; an unexpected failure also
+    carries its traceback in ``traceback``)."""
     path = Path(job["path"])
     out = blank_outcome(job)
     t0 = time.perf_counter()
