@@ -16,6 +16,7 @@ from scipy.stats import multivariate_normal, norm
 from sklearn.metrics import adjusted_rand_score
 
 import mmgp.gp.exact as gp_module
+from mmgp.models.mstep import ModeFitter
 from mmgp.models.sem import MultimodalSEM
 from mmgp.data.folds import _blocks
 from mmgp.models.robust import basis_rank, fit_basis_coefficients
@@ -194,7 +195,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
     """p(w, Y) = prod_k p(Y_k | GP) x Markov(w). Its exact conditional p(w_t | w_-t, Y), from
     enumerating all 2^6 labellings, must equal the normalised product of y_t's predictive under
     each mode's GP given the *other* samples of that mode (LOO for members) and the Markov
-    neighbours: the em's emission, assembled by MultimodalSEM._mode_likelihoods and
+    neighbours: the em's emission, assembled by ModeFitter.predictive (the M-step's mode model) and
     gibbs_conditionals, and the same from ExactGP predict / loo_predictive directly.
 
     ExactGP re-standardises X and Y on every fit; with that, a fixed hyperparameter vector means a
@@ -228,8 +229,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
     table = {tuple(w): log_evidence(np.flatnonzero(w == 0)) + log_evidence(np.flatnonzero(w == 1))
              + log_prior_ref(w, A, init, {0}) for w in seqs}
 
-    sem = MultimodalSEM(2, disturbance=False, max_support=100)
-    sem._t_axis = None  # plain LOO emission (no time window), as fit() without t
+    fitter = ModeFitter(x[:, None], y[:, None], max_support=100)  # no time axis: plain LOO emission
     n_checked = 0
     for w in seqs:
         if min((w == 0).sum(), (w == 1).sum()) < 2:
@@ -239,7 +239,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
         # (a) the em's own emission code
         loglik = np.empty((N, 2))
         for k in range(2):
-            mean, var, *_ = sem._mode_likelihoods(x[:, None], y[:, None], np.flatnonzero(w == k), hyper, False, rng)
+            mean, var, *_ = fitter.predictive(np.flatnonzero(w == k), hyper, False, rng)
             loglik[:, k] = norm.logpdf(y, mean[:, 0], np.sqrt(var[:, 0]))
         p_em = gibbs_conditionals(loglik, A, init, w, np.arange(N))
         np.testing.assert_allclose(p_em, exact, atol=1e-8)
