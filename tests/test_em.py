@@ -461,3 +461,18 @@ def test_basis_mean_extrapolates_a_planted_mode_offset():
     np.testing.assert_allclose(diff.ravel(), 1.5 * np.cos(xq), atol=0.1)
     with pytest.raises(ValueError, match="basis"):
         m.predict(xq[:, None], mode=0)
+
+
+def test_a_mode_no_sample_ends_in_still_gets_a_defined_gp():
+    """K = 3 on a log with two planted modes: the empty mode's GP conditions on the samples most
+    likely in it instead of on nothing (which gave NaN means)."""
+    t, x, f = planted_signal()
+    mode = (((t >= 4) & (t < 8)) | ((t >= 11) & (t < 13.5))).astype(int)
+    y = f + 1.0 * mode + 0.05 * np.random.default_rng(0).normal(size=len(t))
+    m = MultimodalSEM(n_modes=3, disturbance=False, max_sweeps=10, seed=0).fit(x[:, None], y[:, None], t=t)
+    sizes = np.bincount(m.labels_, minlength=3)
+    assert (sizes == 0).any(), sizes            # the case under test happens
+    for k in range(3):
+        mean, std = m.predict(x[:20, None], mode=k)
+        assert np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()
+    assert adjusted_rand_score(mode, m.labels_) >= 0.9

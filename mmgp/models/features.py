@@ -8,26 +8,33 @@ from typing import Sequence
 
 import numpy as np
 
-from ..config import TrainConfig
 from ..data.differentiation import SavitzkyGolay, complete_derivatives, downsample
 from ..data.logs import RobotLog, read_log
 from ..errors import InputError
 
 
-def load_logs(paths: Sequence[str | Path], cfg: TrainConfig, robot=None) -> list[RobotLog]:
-    """Read, check, differentiate and (optionally) downsample each log."""
+def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_window_s: float | None = None,
+              rate_hz: float | None = None) -> list[RobotLog]:
+    """Read (paths) and check each log, complete its derivatives (Savitzky-Golay, window
+    ``diff_window_s`` or per joint by cross-validation) and downsample it to ``rate_hz``."""
     logs = []
     n_ref = None
-    for p in paths:
-        log = read_log(p, n_joints=robot.n_joints if robot is not None else None,
-                       joint_names=robot.joint_names if robot is not None else None)
+    for src in sources:
+        if isinstance(src, RobotLog):
+            log = src
+            if robot is not None:
+                robot.check_log(log.n_joints, log.joint_names, file=log.path)
+        else:
+            log = read_log(src, n_joints=robot.n_joints if robot is not None else None,
+                           joint_names=robot.joint_names if robot is not None else None)
         if n_ref is None:
             n_ref = log.n_joints
         elif log.n_joints != n_ref:
-            raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=p, column="q_0")
-        log = complete_derivatives(log, SavitzkyGolay(window_s=cfg.diff_window_s, cv=True))
-        if cfg.rate_hz is not None:
-            log = downsample(log, cfg.rate_hz)
+            raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=log.path,
+                             column="q_0")
+        log = complete_derivatives(log, SavitzkyGolay(window_s=diff_window_s, cv=True))
+        if rate_hz is not None:
+            log = downsample(log, rate_hz)
         logs.append(log)
     return logs
 
@@ -52,7 +59,7 @@ def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
 
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
-    """The mean basis a model uses: "payload", "rbd" or None (see TrainConfig.mean_basis)."""
+    """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis)."""
     rbd_ok = robot is not None and semiparametric == "residual"
     if kind == "auto":
         return "payload" if rbd_ok else None

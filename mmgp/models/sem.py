@@ -289,6 +289,10 @@ class MultimodalSEM:
             members = np.flatnonzero((self.labels_ == i) & ~self.disturbed_)
             if len(members) < max(5, n):
                 members = np.flatnonzero(self.labels_ == i)
+            if len(members) < max(5, n):
+                # A mode no sample ended in (e.g. K = 3 tried on a 2-mode log) keeps the samples
+                # most likely in it, so its GP is defined (on no data its mean and scale are NaN).
+                members = np.sort(np.argsort(-self.p_mode_[:, i], kind="stable")[:max(5, n)])
             coef = None
             Yk = Y
             if fitter.basis is not None:
