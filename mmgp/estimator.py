@@ -14,7 +14,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
-from . import __version__
+from ._version import __version__
 from .data.logs import MIN_SAMPLES, RobotLog
 from .errors import InputError
 from .gp.exact import ExactGP

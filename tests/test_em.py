@@ -229,7 +229,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
     table = {tuple(w): log_evidence(np.flatnonzero(w == 0)) + log_evidence(np.flatnonzero(w == 1))
              + log_prior_ref(w, A, init, {0}) for w in seqs}
 
-    fitter = ModeFitter(x[:, None], y[:, None], max_support=100)  # no time axis: plain LOO emission
+    fitter = ModeFitter(x[:, None], y[:, None], MultimodalSEM(2, disturbance=False, max_support=100))  # no time axis: LOO
     n_checked = 0
     for w in seqs:
         if min((w == 0).sum(), (w == 1).sum()) < 2:

@@ -47,34 +47,26 @@ class Emissions:
 class ModeFitter:
     """One mode's model on given member samples and every sample's predictive under it.
 
-    X (T, d) inputs, Y (T, n) torques; ``t_axis`` (T,) one increasing time axis over all logs
-    (enables the leave-window-out likelihood with ``exclusion_s`` / ``block_s``); ``basis``
-    (T, n, p) optional regressors of a robust linear mean under the GP. Other settings as in
-    :class:`~mmgp.models.sem.MultimodalSEM`.
+    X (T, d) inputs, Y (T, n) torques; ``settings`` the sweep settings (``max_support``,
+    ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
+    ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`); ``t_axis`` (T,) one increasing time
+    axis over all logs (enables the leave-window-out likelihood); ``basis`` (T, n, p) optional
+    regressors of a robust linear mean under the GP.
     """
 
-    def __init__(self, X: np.ndarray, Y: np.ndarray, *, t_axis: np.ndarray | None = None,
-                 basis: np.ndarray | None = None, shared_basis: bool = False, max_support: int = 500,
-                 fit_points: int = 500, fit_iter: int = 50, exclusion_s: float = 1.0, block_s: float = 2.0,
-                 gp_kwargs: dict | None = None, seed: int = 0):
-        self.X, self.Y, self.t_axis, self.basis = X, Y, t_axis, basis
-        self.shared_basis = shared_basis
-        self.max_support = max_support
-        self.fit_points = fit_points
-        self.fit_iter = fit_iter
-        self.exclusion_s = exclusion_s
-        self.block_s = block_s
-        self.gp_kwargs = gp_kwargs or {}
-        self.seed = seed
+    def __init__(self, X: np.ndarray, Y: np.ndarray, settings, *, t_axis: np.ndarray | None = None,
+                 basis: np.ndarray | None = None):
+        self.X, self.Y, self.settings, self.t_axis, self.basis = X, Y, settings, t_axis, basis
 
     def new_gp(self) -> ExactGP:
-        kw = dict(max_fit_points=self.fit_points, max_iter=self.fit_iter, seed=self.seed)
-        kw.update(self.gp_kwargs)
+        s = self.settings
+        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed)
+        kw.update(s.gp_kwargs)
         return ExactGP(**kw)
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``."""
-        fit = fit_shared_coefficients if self.shared_basis else fit_basis_coefficients
+        fit = fit_shared_coefficients if self.settings.shared_basis else fit_basis_coefficients
         return fit(self.basis[members], self.Y[members])
 
     def predictive(self, members: np.ndarray, hyper: Hyper | None, optimise: bool,
@@ -93,19 +85,19 @@ class ModeFitter:
         return (*self._gp_predictive(self.Y, members, hyper, optimise, rng), None)
 
     def _gp_predictive(self, Y, members, hyper, optimise, rng):
-        X = self.X
+        X, s = self.X, self.settings
         support = members
-        if len(support) > self.max_support:
-            support = np.sort(rng.choice(support, self.max_support, replace=False))
+        if len(support) > s.max_support:
+            support = np.sort(rng.choice(support, s.max_support, replace=False))
         gp = self.new_gp()
-        windowed = self.t_axis is not None and self.exclusion_s > 0 and self.block_s > 0
+        windowed = self.t_axis is not None and s.exclusion_s > 0 and s.block_s > 0
         T, n = Y.shape
         if windowed and optimise:
             hyper = self._windowed_hyper(gp, Y, support, hyper, rng)
             optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
         if windowed:
-            mean, var = windowed_predictive(gp, X, self.t_axis, self.t_axis[support], self.exclusion_s)
+            mean, var = windowed_predictive(gp, X, self.t_axis, self.t_axis[support], s.exclusion_s)
             return mean.reshape(T, n), var.reshape(T, n), gp, support
         mean = np.empty((T, n))
         std = np.empty((T, n))
@@ -119,15 +111,15 @@ class ModeFitter:
 
     def _windowed_hyper(self, gp, Y, support, hyper, rng) -> Hyper:
         # Condition once on the fitting subset to get the standardisation, then tune there.
-        X = self.X
+        X, s = self.X, self.settings
         fit_idx = support
-        if len(fit_idx) > self.fit_points:
-            fit_idx = np.sort(rng.choice(support, self.fit_points, replace=False))
+        if len(fit_idx) > s.fit_points:
+            fit_idx = np.sort(rng.choice(support, s.fit_points, replace=False))
         gp.fit(X[fit_idx], Y[fit_idx], hyper=hyper or default_hyper(X.shape[1], Y.shape[1]), optimise=False)
         # Warm-started refits on long logs (where refits dominate the cost) get half the
         # iterations of the first fit.
-        iters = self.fit_iter if (hyper is None or len(Y) <= 2000) else max(10, self.fit_iter // 2)
-        return optimise_hyper_windowed(gp.Xs_, gp.Ys_, self.t_axis[fit_idx], self.block_s / 2.0,
+        iters = s.fit_iter if (hyper is None or len(Y) <= 2000) else max(10, s.fit_iter // 2)
+        return optimise_hyper_windowed(gp.Xs_, gp.Ys_, self.t_axis[fit_idx], s.block_s / 2.0,
                                        gp.hyper_, max_iter=iters)
 
 

@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .. import __version__
+from .._version import __version__
 from ..data.logs import RobotLog
 from .features import _input_names
 

@@ -219,11 +219,7 @@ class MultimodalSEM:
                 offset = axis[b - 1] + 10.0 * max(self.exclusion_s, 1.0)
         if T < 5 * self.n_modes:
             raise ValueError(f"{T} samples are too few for {self.n_modes} modes")
-        fitter = ModeFitter(X, Y, t_axis=axis, basis=basis, shared_basis=self.shared_basis,
-                            max_support=self.max_support, fit_points=self.fit_points, fit_iter=self.fit_iter,
-                            exclusion_s=self.exclusion_s, block_s=self.block_s, gp_kwargs=self.gp_kwargs,
-                            seed=self.seed)
-        return fitter, starts
+        return ModeFitter(X, Y, self, t_axis=axis, basis=basis), starts
 
     def _initial_states(self, fitter: ModeFitter, rng) -> tuple[np.ndarray, object]:
         """Start without labels: one GP on everything; robust outliers of its LOO residuals start
