@@ -186,6 +186,8 @@ def test_robot_model_round_trip_with_payload_basis(tmp_path):
     model = MultimodalGP(robot=robot, **FAST).fit(**arrays)
     assert model.basis_kind_ == "payload" and model.basis_coef_[0] is not None
     assert model.report_["robot"]["robot"] == "double_pendulum"
+    twin = clone(model)                        # the RobotModel setting is copied, not shared
+    assert twin.robot is not robot and twin.robot.joint_names == robot.joint_names
     model.save(tmp_path / "m")
     back = MultimodalGP.load(tmp_path / "m")
     assert back.robot == "double_pendulum" and back.robot_.joint_names == robot.joint_names

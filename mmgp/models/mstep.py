@@ -36,12 +36,11 @@ class SweepParams:
 
 @dataclass
 class Emissions:
-    """Per-mode means and calibrated variances (K arrays (T, n)), log-likelihoods (T, S), GPs."""
+    """Per-mode means and calibrated variances (K arrays (T, n)) and log-likelihoods (T, S)."""
 
     means: list
     vars: list
     loglik: np.ndarray
-    gps: list
 
 
 class ModeFitter:
@@ -139,7 +138,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
     loglik = np.empty((T, S))
     mode_of = states % K
     dist = states >= K if disturbance else np.zeros(T, bool)
-    mus, vars_, gps = [], [], []
+    mus, vars_ = [], []
     for k in range(K):
         members = np.flatnonzero((mode_of == k) & ~dist)
         if len(members) < max(5, n):
@@ -150,7 +149,6 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         var = var * params.calib[k]
         mus.append(mean)
         vars_.append(var)
-        gps.append(gp)
         loglik[:, k] = _gauss_logpdf(Y, mean, var).sum(1)
         if disturbance:
             ll_push = _gauss_logpdf(Y, mean, var + params.sigma_d)
@@ -159,7 +157,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
                 # "untouched" and "pushed", so unaffected joints cost at most log 2 each.
                 ll_push = np.logaddexp(_gauss_logpdf(Y, mean, var), ll_push) - np.log(2.0)
             loglik[:, K + k] = ll_push.sum(1)
-    return Emissions(mus, vars_, loglik, gps)
+    return Emissions(mus, vars_, loglik)
 
 
 def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: SweepParams, *,
