@@ -183,12 +183,14 @@ def test_modes_auto_picks_the_planted_two_modes(tmp_path):
     log = tmp_path / "two.parquet"
     mode = planted_two_mode_log(log)
     out = tmp_path / "auto"
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("train:\n  max_sweeps: 8\n  fit_iter: 20\n")
     res = runner.invoke(app, ["train", str(log), "--out", str(out), "--modes", "auto", "--no-disturbance",
-                              "--quiet"])
+                              "--config", str(cfg), "--quiet"])
     assert res.exit_code == 0, res.output
     rep = json.loads((out / "report.json").read_text())
     assert rep["mode_selection"]["chosen"] == 2 and set(rep["mode_selection"]["scores"]) == {"1", "2", "3"}
-    assert rep["n_modes"] == 2
+    assert rep["n_modes"] == 2 and rep["config"]["max_sweeps"] == 8 and rep["config"]["n_modes"] == "auto"
     lab = pd.read_parquet(out / "labels.parquet")
     assert {"p_mode_0", "p_mode_1"} <= set(lab.columns) and "p_mode_2" not in lab.columns
     assert adjusted_rand_score(mode, lab["mode"]) >= 0.9
@@ -196,11 +198,15 @@ def test_modes_auto_picks_the_planted_two_modes(tmp_path):
 
 def test_demo_end_to_end(tmp_path, trained):
     out = tmp_path / "demo"
+    out.mkdir()
+    (out / ".mmgp-demo").write_text("an earlier demo run\n")     # the demo may replace its own output
+    (out / "stale.txt").write_text("from the earlier run")
     res = runner.invoke(app, ["demo", "--out", str(out)])
     assert res.exit_code == 0, res.output
     for name in ("labels.parquet", "report.json", "evaluation.json", "model.json", "model.npz", "labels.png",
                  "likelihood_trace.png"):
         assert (out / name).is_file(), name
+    assert not (out / "stale.txt").exists()
     # The demo trains with the defaults on the shipped log: the labels of `mmgp train`.
     pred = pd.read_parquet(out / "labels.parquet")
     pd.testing.assert_frame_equal(pred, pd.read_parquet(trained / "labels.parquet"), check_exact=True)
@@ -211,6 +217,9 @@ def test_demo_end_to_end(tmp_path, trained):
     assert fig["unperturbed_correct"] == pytest.approx(((p == 0) & (d == 0)).sum() / (d == 0).sum())
     assert fig["perturbed_missed"] == pytest.approx(((p == 0) & (d == 1)).sum() / (d == 1).sum())
     assert f"{fig['unperturbed_correct']:.3f}" in res.stdout and "0.817" in res.stdout
-    # A second run may replace the demo's own output without --force.
-    res = runner.invoke(app, ["demo", "--out", str(out)])
-    assert res.exit_code == 0, res.output
+    # Another folder is not replaced without --force.
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("precious")
+    res = runner.invoke(app, ["demo", "--out", str(other)])
+    assert res.exit_code == 2 and (other / "keep.txt").read_text() == "precious"
