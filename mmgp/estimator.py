@@ -19,8 +19,8 @@ from .data.logs import MIN_SAMPLES, RobotLog
 from .errors import InputError
 from .gp.exact import ExactGP
 from .gp.hyper import Hyper
-from .models.features import (_features, build_features, friction_velocity_scale, load_logs,
-                              resolve_mean_basis)
+from .models.features import (build_features, friction_velocity_scale, load_logs, resolve_mean_basis,
+                              state_features)
 from .models.report import training_report
 
 MODEL_FORMAT = "mmgp-model"
@@ -337,7 +337,7 @@ class MultimodalGP(BaseEstimator):
             raise InputError(f"q, dq, ddq must have the same number of rows, got {len(q)}, {len(dq)}, {len(ddq)}")
         gp = self.gp(mode)
         coef = self.basis_coef_[mode]
-        f = _features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
+        f = state_features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
                       friction_scale=self.friction_scale_, friction_sign=friction_sign,
                       basis_kind=self.basis_kind_ if coef is not None else None)
         mean, std = gp.predict(f.X, include_noise=True)

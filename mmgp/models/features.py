@@ -76,13 +76,15 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
+    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
     f.t = np.concatenate([lg.t for lg in logs])
     return f
 
 
-def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-              friction_sign: float | None = None, basis_kind: str | None = None) -> Features:
+def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
+                   friction_sign: float | None = None, basis_kind: str | None = None) -> Features:
+    """GP inputs and targets at states q, dq, ddq and torques tau (T, n); ``friction_sign``
+    (+1 or -1) replaces the smooth sign input (prediction on one sliding branch)."""
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
@@ -104,7 +106,8 @@ def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scal
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
-def _input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:
+def input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:
+    """Names of the GP input columns, in order."""
     names = [f"q_{j}" for j in range(n)] + [f"dq_{j}" for j in range(n)] + [f"ddq_{j}" for j in range(n)]
     if with_friction:
         names += [f"tanh(dq_{j}/v_s)" for j in range(n)]

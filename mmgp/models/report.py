@@ -8,7 +8,7 @@ import numpy as np
 
 from .._version import __version__
 from ..data.logs import RobotLog
-from .features import _input_names
+from .features import input_names
 
 
 def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_names: list[str],
@@ -37,7 +37,7 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
                 {"joint": joint_names[j], "lengthscale": g.lengthscale_[j].tolist(),
                  "signal_std": float(math.sqrt(g.hyper_.signal_var[j]) * g.y_scaler_.scale_[j]),
                  "noise_std": float(g.noise_std_[j])} for j in range(n)],
-             "inputs": _input_names(n, semiparametric == "feature", with_friction),
+             "inputs": input_names(n, semiparametric == "feature", with_friction),
              "n_support": int(len(sem.support_Y_[k]))}
             for k, g in enumerate(sem.gps_)],
         "disturbance": {"enabled": sem.disturbance, "sigma_d_std": np.sqrt(sem.sigma_d_).tolist(),
