@@ -14,17 +14,19 @@ from .common import _fail, app
 def export(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp train'."),
            out: Path = typer.Option(..., "--out", help="Compensator file (.json or .npz)."),
            c_source: Optional[Path] = typer.Option(None, "--c", help="Also write C source+header with this prefix."),
-           max_support: int = typer.Option(1000, "--max-support"),
+           config: Optional[Path] = typer.Option(None, "--config", help="YAML settings, section 'export'."),
+           max_support: Optional[int] = typer.Option(None, "--max-support", help="Support positions (default 1000)."),
            force: bool = typer.Option(False, "--force")):
     """Export the position-only passive feedforward tau_ff(q) = grad V(q) with its storage function."""
-    from ..compensator import check_passivity, compensator_from_model
-    from ..models.trained import TrainedModel
+    from ..compensator import check_passivity
+    from ..config import load_settings
+    from ..estimator import MultimodalGP
 
     try:
         if out.exists() and not force:
             raise InputError("output exists (use --force to replace it)", file=out)
-        model = TrainedModel.load(model_dir)
-        comp = compensator_from_model(model, max_support=max_support)
+        settings = load_settings(config, "export", MultimodalGP.to_compensator, max_support=max_support)
+        comp = MultimodalGP.load(model_dir).to_compensator(**settings)
         comp.save(out)
         written = [str(out)]
         if c_source is not None:
