@@ -228,7 +228,7 @@ def test_command_writes_table_trends_and_errors(local_ray, tmp_path):
 
 
 def test_training_in_the_fleet(tmp_path):
-    from mmgp.models.trained import TrainedModel
+    from mmgp import MultimodalGP
 
     (tmp_path / "lever.urdf").write_text(URDF)
     log = write_lever_log(tmp_path, "a.parquet", seed=3, tau_c=0.2, n=600)
@@ -241,7 +241,7 @@ def test_training_in_the_fleet(tmp_path):
     rows = fleet.table_[fleet.table_["effect"] == "training"].set_index("param")["value"]
     assert rows["modes[0].noise_std"] == report["hyperparameters"][0]["per_joint"][0]["noise_std"]
     assert rows["disturbed_fraction"] == report["disturbance"]["n_disturbed"] / report["n_samples"]
-    model = TrainedModel.load(folder)
+    model = MultimodalGP.load(folder)
     frame = pd.read_parquet(log)
     mean, std = model.predict(frame[["q_0"]].to_numpy(), frame[["dq_0"]].to_numpy(), frame[["ddq_0"]].to_numpy())
     assert mean.shape == (600, 1) and np.isfinite(std).all()

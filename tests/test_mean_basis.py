@@ -8,10 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmgp.config import load_config
 from mmgp.models.robust import fit_basis_coefficients, fit_shared_coefficients
 from mmgp.errors import InputError
-from mmgp.models.trained import TrainedModel, train
+from mmgp import MultimodalGP
 from mmgp.models.features import resolve_mean_basis
 from mmgp.physics.robot import load_robot
 from mmgp.sim import panda_modes
@@ -74,7 +73,7 @@ def test_mean_basis_resolution():
     with pytest.raises(InputError, match="rbd"):
         resolve_mean_basis("rbd", None, "residual")
     with pytest.raises(InputError, match="mean_basis"):
-        load_config(mean_basis="linear")
+        MultimodalGP(mean_basis="linear").fit(t=np.arange(20) * 0.01, q=np.zeros((20, 1)), tau=np.zeros((20, 1)))
 
 
 def test_trained_payload_model_round_trips_through_disk(tmp_path):
@@ -82,16 +81,16 @@ def test_trained_payload_model_round_trips_through_disk(tmp_path):
     log = tmp_path / "panda.parquet"
     rec.write(log)
     robot = load_robot(log_path=log)
-    cfg = load_config(max_sweeps=3, min_sweeps=2, average_last=1, fit_iter=8, fit_points=150, max_support=200)
-    res = train([log], cfg, robot=robot)
-    assert res.report["mean_basis"]["kind"] == "payload" and 7 <= res.report["mean_basis"]["rank"] <= 10
-    res.model.save(tmp_path)
-    back = TrainedModel.load(tmp_path)
+    model = MultimodalGP(robot=robot, max_sweeps=3, min_sweeps=2, average_last=1, fit_iter=8, fit_points=150,
+                         max_support=200).fit(log)
+    assert model.report_["mean_basis"]["kind"] == "payload" and 7 <= model.report_["mean_basis"]["rank"] <= 10
+    model.save(tmp_path)
+    back = MultimodalGP.load(tmp_path)
     assert back.basis_kind_ == "payload"
-    np.testing.assert_array_equal(back.basis_coef_[0], res.model.basis_coef_[0])
+    np.testing.assert_array_equal(back.basis_coef_[0], model.basis_coef_[0])
     rows = slice(20, 90)   # after the start transient, before the first push (t >= 1 s)
     q, dq, ddq = rec.q[rows], rec.info["dq_true"][rows], rec.info["ddq_true"][rows]
-    m1, s1 = res.model.predict(q, dq, ddq)
+    m1, s1 = model.predict(q, dq, ddq)
     m2, s2 = back.predict(q, dq, ddq)
     np.testing.assert_allclose(m2, m1, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(s2, s1, rtol=1e-10, atol=1e-12)

@@ -106,18 +106,17 @@ def diagnose_log(log, robot, settings: dict | None):
 def train_log(path: Path, robot, settings: dict | None) -> dict:
     """Train on one log; returns the training report and the saved model's files as bytes.
 
-    The one place the fleet calls the training (``MultimodalGP`` will replace it)."""
-    from ..config import load_config
+    The one place the fleet calls the training."""
     from ..data.outputs import jsonable, write_table
-    from ..models.trained import labels_frame, train
+    from ..estimator import MultimodalGP
 
-    result = train([path], load_config(**(settings or {})), robot=robot)
+    model = MultimodalGP(robot=robot, **(settings or {})).fit(path)
     with tempfile.TemporaryDirectory(prefix="mmgp-fleet-") as tmp:
         folder = Path(tmp)
-        result.model.save(folder)
-        write_table(folder / "labels.parquet", labels_frame(result))
+        model.save(folder)
+        write_table(folder / "labels.parquet", model.labels_)
         files = {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
-    return {"report": jsonable(result.report), "files": files}
+    return {"report": jsonable(model.report_), "files": files}
 
 
 def _process(path: Path, job: dict, out: dict) -> None:
