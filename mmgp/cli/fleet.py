@@ -7,12 +7,17 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import _fail, app
+from .common import ProgressDisplay, _fail, app, force_option, out_dir_option, quiet_option
 
 
-def _progress(done: int, total: int, outcome: dict) -> None:
-    what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
-    typer.echo(f"  [{done}/{total}] {outcome['log']}: {what} ({outcome['seconds']:.1f} s)", err=True)
+def _progress(shown: ProgressDisplay):
+    def step(done: int, total: int, outcome: dict) -> None:
+        if done == 1:
+            shown.stage("fleet: logs", total)
+        what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
+        shown.step(f"  [{done}/{total}] {outcome['log']}: {what} ({outcome['seconds']:.1f} s)", completed=done)
+
+    return step
 
 
 def _report(fleet, out: Path) -> str:
@@ -26,13 +31,13 @@ def _report(fleet, out: Path) -> str:
                          f"{len(d['flagged_logs'])} log(s) flagged")
         elif d["status"] == "appeared":
             lines.append(f"NEW   {d['robot']} {d['effect']} {d['joint'] or ''} {d['param']}: first in {d['first_log']}")
-    lines.append(f"Wrote {out}/fleet.parquet, drift.json, fleet.json, trends/, logs/.")
+    lines.append(f"Wrote {out}/report.html, fleet.parquet, drift.json, fleet.json, trends/, logs/.")
     return "\n".join(lines)
 
 
 @app.command()
 def fleet(logs: List[Path] = typer.Argument(..., help="Log files, or folders of logs (*.parquet, *.pq, *.csv)."),
-          out: Path = typer.Option(..., "--out", help="Output folder (created; refused if non-empty)."),
+          out: Path = out_dir_option(),
           address: Optional[str] = typer.Option(None, "--address",
                                                 help="Ray cluster address (e.g. auto, ray://host:10001); "
                                                      "default: a local Ray on this machine."),
@@ -43,9 +48,10 @@ def fleet(logs: List[Path] = typer.Argument(..., help="Log files, or folders of 
                                                 help="Tasks at once (default: the cores available)."),
           baseline: int = typer.Option(5, "--baseline", help="First logs per robot that define the drift baseline."),
           serial: bool = typer.Option(False, "--serial", help="Run the logs one after another here, without Ray."),
-          force: bool = typer.Option(False, "--force", help="Replace a non-empty --out.")):
-    """Diagnose (and with --train train on) every log as a Ray task; write one table
-    (DIR/fleet.parquet), trend plots (DIR/trends/) and drift flags (DIR/drift.json)."""
+          force: bool = force_option(),
+          quiet: bool = quiet_option()):
+    """Diagnose (and with --train train on) every log as a Ray task; write one table (DIR/fleet.parquet),
+    trend plots (DIR/trends/), drift flags (DIR/drift.json) and DIR/report.html."""
     from ..data.outputs import atomic_output_dir
     from ..fleet import Fleet
     from ..fleet.engine import RayMissingError
@@ -53,8 +59,8 @@ def fleet(logs: List[Path] = typer.Argument(..., help="Log files, or folders of 
     runner = Fleet(robot=robot, urdf=urdf, train=train, engine="serial" if serial else "ray", address=address,
                    workers=workers, baseline=baseline)
     try:
-        with atomic_output_dir(out, force=force) as tmp:
-            runner.fit(logs, progress=_progress)
+        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            runner.fit(logs, progress=_progress(shown))
             runner.write(tmp)
     except InputError as exc:
         _fail(exc)

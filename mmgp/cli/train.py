@@ -12,7 +12,8 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import _fail, _progress_printer, app
+from .common import (ProgressDisplay, SweepProgress, _fail, app, force_option, out_dir_option, quiet_option,
+                     seed_option, sweep_limit)
 
 
 def _modes(value: Optional[str]):
@@ -30,12 +31,14 @@ def _robot_option(robot: Optional[str], urdf: Optional[Path]):
     return robot if robot is not None else urdf
 
 
-def _write_training_outputs(out: Path, model) -> None:
-    """labels.parquet, report.json, model.npz + model.json and the two plots."""
+def _write_training_outputs(out: Path, model, evaluation: dict | None = None, title: str = "mmgp train") -> None:
+    """labels.parquet, report.json, model.npz + model.json, the two plots and report.html
+    (with the classification figures of ``evaluation`` when given)."""
     import numpy as np
 
     from ..data.outputs import write_table
     from ..evaluation.plots import plot_labels, plot_trace
+    from ..evaluation.reports import write_training_report
 
     labels = model.labels_
     write_table(out / "labels.parquet", labels)
@@ -46,6 +49,7 @@ def _write_training_outputs(out: Path, model) -> None:
     plot_labels(out / "labels.png", t, tau, labels["mode"].to_numpy(), labels["p_disturbed"].to_numpy(),
                 model.joint_names_)
     plot_trace(out / "likelihood_trace.png", model.report_["likelihood_trace"])
+    write_training_report(out, model.report_, evaluation, title=title)
 
 
 def _summary(model) -> str:
@@ -58,34 +62,34 @@ def _summary(model) -> str:
 
 @app.command()
 def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet or CSV)."),
-          out: Path = typer.Option(..., "--out", help="Output folder (created; refused if non-empty)."),
+          out: Path = out_dir_option(),
           config: Optional[Path] = typer.Option(None, "--config",
-                                                help="YAML settings, section 'train' (see configs/default.yaml)."),
+                                                help="YAML settings, section 'train' ('mmgp config show default' "
+                                                     "prints every setting at its default)."),
           modes: Optional[str] = typer.Option(None, "--modes", help="Number of dynamic modes, or 'auto'."),
           disturbance: Optional[bool] = typer.Option(None, "--disturbance/--no-disturbance",
                                                      help="Disturbance mode (default on)."),
           robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name."),
           urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot."),
           device: Optional[str] = typer.Option(None, "--device", help="torch device: cpu, cuda, auto."),
-          seed: Optional[int] = typer.Option(None, "--seed"),
-          force: bool = typer.Option(False, "--force", help="Replace a non-empty --out."),
-          quiet: bool = typer.Option(False, "--quiet", help="No per-sweep progress.")):
-    """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots."""
+          seed: Optional[int] = seed_option(),
+          force: bool = force_option(),
+          quiet: bool = quiet_option()):
+    """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
     from ..config import load_settings
     from ..data.outputs import atomic_output_dir
     from ..estimator import MultimodalGP
 
     try:
         settings = load_settings(config, "train", MultimodalGP, n_modes=_modes(modes), disturbance=disturbance,
-                                 robot=_robot_option(robot, urdf), device=device, seed=seed,
-                                 progress=_progress_printer(quiet))
-        model = MultimodalGP(**settings)
-        with atomic_output_dir(out, force=force) as tmp:
+                                 robot=_robot_option(robot, urdf), device=device, seed=seed)
+        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
             model.fit(logs)
             _write_training_outputs(tmp, model)
     except InputError as exc:
         _fail(exc)
-    typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots.")
+    typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots, report.html.")
 
 
 @app.command()
@@ -93,7 +97,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
             log: Path = typer.Argument(..., help="Log to predict (q, and dq/ddq or estimated)."),
             out: Path = typer.Option(..., "--out", help="Output Parquet file."),
             mode: int = typer.Option(0, "--mode", help="Mode to predict with (0 = nominal)."),
-            force: bool = typer.Option(False, "--force")):
+            force: bool = force_option()):
     """Predicted torque and its standard deviation per joint for a log."""
     import pandas as pd
 
@@ -124,11 +128,12 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
 @app.command()
 def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp train'."),
              truth: Path = typer.Option(..., "--truth", help="Ground-truth labels (t, disturbed and/or mode).")):
-    """Classification figures against ground truth; writes DIR/evaluation.json."""
+    """Classification figures against ground truth; writes DIR/evaluation.json, adds them to DIR/report.html."""
     import pandas as pd
 
     from ..data.outputs import atomic_write_bytes
     from ..evaluation.metrics import format_figures
+    from ..evaluation.reports import write_training_report
 
     try:
         lab_path = model_dir / "labels.parquet"
@@ -140,6 +145,8 @@ def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp
                              "train on the log alone to evaluate it", file=lab_path)
         fig = _figures(pred, truth)
         atomic_write_bytes(model_dir / "evaluation.json", json.dumps(fig, indent=2).encode())
+        if (model_dir / "report.json").is_file():  # the page now shows the figures too
+            write_training_report(model_dir, json.loads((model_dir / "report.json").read_text()), fig)
     except InputError as exc:
         _fail(exc)
     typer.echo(format_figures(fig))
@@ -154,7 +161,8 @@ def _figures(pred, truth_path: Path) -> dict:
 
 @app.command()
 def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folder."),
-         force: bool = typer.Option(False, "--force")):
+         force: bool = force_option(),
+         quiet: bool = quiet_option()):
     """Train and evaluate on the shipped 1-DOF replica of the source experiment (MuJoCo,
     0.73 kg load, Bowden-cable-like friction, pushes, 20 Hz) and print our figures beside the source's."""
     from ..data.outputs import atomic_output_dir, atomic_write_bytes
@@ -166,12 +174,12 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
     if out.exists() and (out / marker).exists():
         force = True  # the demo may replace its own previous output
     try:
-        with atomic_output_dir(out, force=force) as tmp:
+        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
             log, lab = demo_files()
-            typer.echo(f"demo: training on {log}", err=True)
-            model = MultimodalGP(progress=_progress_printer(False)).fit(log)
-            _write_training_outputs(tmp, model)
+            shown.step(f"demo: training on {log}")
+            model = MultimodalGP(progress=SweepProgress(shown, sweep_limit({}))).fit(log)
             fig = _figures(model.labels_, lab)
+            _write_training_outputs(tmp, model, fig, title="mmgp demo: 1-DOF replica of the source experiment")
             atomic_write_bytes(tmp / "evaluation.json", json.dumps(fig, indent=2).encode())
             (tmp / marker).write_text("written by mmgp demo\n")
     except InputError as exc:
@@ -180,4 +188,4 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
     typer.echo("1-DOF replica of the source experiment (Haninger 2016, ch. 5): disturbance classification")
     typer.echo(format_figures(fig, with_source=True))
     typer.echo(f"\ntrained in {model.report_['timings']['total_s']:.1f} s; outputs in {out}/ "
-               "(labels.parquet, report.json, evaluation.json, labels.png, likelihood_trace.png)")
+               "(report.html, labels.parquet, report.json, evaluation.json, labels.png, likelihood_trace.png)")

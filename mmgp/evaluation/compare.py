@@ -216,8 +216,9 @@ def format_compare(result: dict) -> str:
 
 
 def write_compare(result: dict, out_dir) -> list[Path]:
-    """Write ``out_dir/compare.json`` (the result) and ``out_dir/compare.png`` (grouped bars of
-    normalised MSE per joint, log scale, dashed line at 1 = predicting the mean). Returns the paths."""
+    """Write ``out_dir/compare.json`` (the result), ``out_dir/compare.png`` (grouped bars of
+    normalised MSE per joint, log scale, dashed line at 1 = predicting the mean) and
+    ``out_dir/report.html`` (both on one self-contained page). Returns the paths."""
     import io as _io
 
     import matplotlib
@@ -256,4 +257,6 @@ def write_compare(result: dict, out_dir) -> list[Path]:
     plt.close(fig)
     png = out_dir / "compare.png"
     atomic_write_bytes(png, buf.getvalue())
-    return [js, png]
+    from .reports import write_compare_report
+
+    return [js, png, write_compare_report(out_dir, result)]

@@ -142,10 +142,11 @@ class Fleet(BaseEstimator):
                 "n_logs": len(logs), "n_failed": sum(o["error"] is not None for o in self.outcomes_), "logs": logs}
 
     def write(self, out_dir) -> Path:
-        """Write ``fleet.parquet``, ``drift.json``, ``fleet.json`` (the summary), ``trends/*.png``
-        and per log ``logs/<name>/`` (``findings.json``; ``train/`` with the model, labels and
+        """Write ``fleet.parquet``, ``drift.json``, ``fleet.json`` (the summary), ``trends/*.png``,
+        ``report.html`` (all of these on one self-contained page) and per log ``logs/<name>/`` (``findings.json``; ``train/`` with the model, labels and
         report when training; ``error.txt`` when it failed) into the folder ``out_dir``."""
         from .plots import plot_trends
+        from .report import write_fleet_report
 
         self._fitted()
         out = Path(out_dir)
@@ -154,6 +155,7 @@ class Fleet(BaseEstimator):
         summary = self.summary()
         summary["trends"] = plot_trends(self.table_, self.drift_, out / "trends")
         atomic_write_bytes(out / "fleet.json", json.dumps(jsonable(summary), indent=2).encode())
+        write_fleet_report(out, summary, self.drift_)
         for o, s in zip(self.outcomes_, summary["logs"]):
             _write_log_outputs(out / s["folder"], o)
         return out
