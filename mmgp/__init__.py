@@ -9,6 +9,7 @@ Public API (imported on first use, so ``import mmgp`` loads neither torch nor pi
 - :func:`read_log`, :class:`RobotLog`: a checked log (docs/contract.md).
 - :class:`RobotModel`, :func:`load_robot`: Pinocchio rigid-body models.
 - :class:`InputError`: the one error for bad input.
+- :func:`demo_files`: the shipped demo recording and its ground-truth labels (Parquet paths).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ _LAZY = {
     "RobotModel": ".physics.robot",
     "load_robot": ".physics.robot",
     "InputError": ".errors",
+    "demo_files": ".resources",
 }
 
 __all__ = ["__version__", *_LAZY]
