@@ -16,7 +16,8 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
              out: Path = out_dir_option(),
              robot: Optional[str] = robot_option(),
              urdf: Optional[Path] = urdf_option(),
-             force: bool = force_option()):
+             force: bool = force_option(),
+             quiet: bool = quiet_option()):
     """Locate the sim-vs-real mismatch, name the missing physics, fit it, show the held-out gain."""
     from ..diagnosis.pipeline import diagnose as run_diagnose
     from ..data.outputs import atomic_output_dir
@@ -29,7 +30,8 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
             raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                              "(or name one in the log's metadata)", file=log)
         lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints, joint_names=robot_model.joint_names))
-        with atomic_output_dir(out, force=force) as tmp:
+        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            shown.stage("diagnose", None)  # no stages reported yet: elapsed time only
             res = run_diagnose(lg, robot_model)
             res.write(tmp)
     except InputError as exc:

@@ -66,8 +66,8 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
     sel = report.get("mode_selection")
     if sel:
         page.section("Number of modes", "BIC-style score on the chain's log marginal likelihood; the highest wins.")
-        page.table(["modes", "score", "chosen"], [[int(k), v, int(k) == sel["chosen"]] for k, v in sel["scores"].items()],
-                   kind="mode-selection")
+        rows = [[int(k), v, int(k) == sel["chosen"]] for k, v in sel["scores"].items()]
+        page.table(["modes", "score", "chosen"], rows, kind="mode-selection")
     page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
                                        _hyperparameter_rows(report), kind="hyperparameters")
     if evaluation is not None:
