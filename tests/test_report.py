@@ -177,6 +177,18 @@ def test_training_report_shows_the_json_and_the_plots(trained):
     assert page.json["report"] == rep
 
 
+def test_training_report_shows_the_mode_selection(trained, tmp_path):
+    from mmgp.evaluation.reports import write_training_report
+
+    rep = json.loads((trained / "report.json").read_text())
+    rep["mode_selection"] = {"scores": {"1": -512.25, "2": -498.125, "3": -503.5}, "chosen": 2}
+    page = read_page(write_training_report(tmp_path, rep))
+    rows = page.table("mode-selection")
+    assert [(number(r[0]), number(r[1]), r[2]["text"]) for r in rows] == \
+        [(1, -512.25, "no"), (2, -498.125, "yes"), (3, -503.5, "no")]
+    assert page.images == []                                           # no plots in that folder: none shown
+
+
 def test_evaluate_adds_its_figures_to_the_report(trained):
     res = runner.invoke(app, ["evaluate", str(trained), "--truth", str(LABELS)])
     assert res.exit_code == 0, res.output
@@ -224,7 +236,6 @@ def fake_diagnosis(values: dict):
 
 def test_fleet_report_shows_drift_logs_and_trends(tmp_path, monkeypatch):
     from mmgp.data.outputs import write_table
-    from mmgp.fleet import Fleet
     from mmgp.sim.concealed import ACTUATOR_URDF
 
     (tmp_path / "lever.urdf").write_text(ACTUATOR_URDF)
@@ -236,8 +247,13 @@ def test_fleet_report_shows_drift_logs_and_trends(tmp_path, monkeypatch):
                     metadata={"urdf": "lever.urdf", "log_time": f"2026-01-0{i + 1}T00:00:00Z"})
         values[f"L{i}.parquet"] = tau_c
     monkeypatch.setattr("mmgp.fleet.work.diagnose_log", fake_diagnosis(values))
-    fleet = Fleet(engine="serial", baseline=2).fit(sorted(tmp_path.glob("L*.parquet")))
-    out = fleet.write(tmp_path / "out")
+    monkeypatch.setenv("TTY_COMPATIBLE", "1")                          # the progress bar, as on a terminal
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["fleet", *map(str, sorted(tmp_path.glob("L*.parquet"))), "--out", str(out),
+                              "--serial", "--baseline", "2"])
+    assert res.exit_code == 0, res.output
+    assert "fleet: logs" in res.stderr and "4/4" in res.stderr and "ETA" in res.stderr
+    assert f"Wrote {out}/report.html" in res.stdout
     summary = json.loads((out / "fleet.json").read_text())
     drift = json.loads((out / "drift.json").read_text())
     page = read_page(out / "report.html")

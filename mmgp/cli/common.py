@@ -135,9 +135,10 @@ class ProgressDisplay:
             self._finish_stage()
             self._task = self._bar.add_task(description, total=total)
 
-    def step(self, line: str | None = None, *, completed: int | None = None, advance: int = 0) -> None:
+    def step(self, line: str | None = None, *, completed: int | None = None, advance: int = 0,
+             total: int | None = None) -> None:
         """Report a step: print ``line`` (above the bar on a terminal), then set the bar to
-        ``completed`` steps or move it on by ``advance``."""
+        ``completed`` steps or move it on by ``advance`` (and its length to ``total``, once known)."""
         if self.quiet:
             return
         if self._bar is None:
@@ -145,9 +146,9 @@ class ProgressDisplay:
                 self._console.print(line, markup=False, highlight=False, emoji=False, soft_wrap=True)
             return
         if line is not None:
-            self._bar.console.print(line, markup=False, highlight=False)
+            self._bar.console.print(line, markup=False, highlight=False, emoji=False)
         if self._task is not None:
-            total = self._current().total
+            total = total if total is not None else self._current().total
             if completed is not None and total is not None and completed > total:
                 total = completed  # a limit that was an estimate
             self._bar.update(self._task, total=total, completed=completed, advance=advance or None)

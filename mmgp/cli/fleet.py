@@ -11,11 +11,12 @@ from .common import ProgressDisplay, _fail, app, force_option, out_dir_option, q
 
 
 def _progress(shown: ProgressDisplay):
+    shown.stage("fleet: logs", None)  # the count is known when the first log is back
+
     def step(done: int, total: int, outcome: dict) -> None:
-        if done == 1:
-            shown.stage("fleet: logs", total)
         what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
-        shown.step(f"  [{done}/{total}] {outcome['log']}: {what} ({outcome['seconds']:.1f} s)", completed=done)
+        shown.step(f"  [{done}/{total}] {outcome['log']}: {what} ({outcome['seconds']:.1f} s)", completed=done,
+                   total=total)
 
     return step
 

@@ -56,20 +56,13 @@ def _evaluation_rows(fig: dict) -> list[list]:
 def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | None = None,
                           *, title: str = "mmgp train") -> Path:
     """``out_dir/report.html`` of a training run: key figures of ``report`` (report.json), the
-    per-mode hyperparameters, the classification figures of ``evaluation`` (evaluation.json, with
-    the source's beside them) when given, the plots ``labels.png`` and ``likelihood_trace.png``
-    found in ``out_dir``, and both JSON documents. Returns the path."""
+    classification figures of ``evaluation`` (evaluation.json, with the source's beside them) when
+    given, the plots ``labels.png`` and ``likelihood_trace.png`` found in ``out_dir``, the mode
+    selection and per-mode hyperparameters, and both JSON documents. Returns the path."""
     out = Path(out_dir)
     logs = ", ".join(Path(str(p)).name for p in report["logs"])
     page = HtmlReport(title, subtitle=f"{logs}: {report['n_samples']} samples")
     page.section("Key figures").key_figures(_training_key_figures(report))
-    sel = report.get("mode_selection")
-    if sel:
-        page.section("Number of modes", "BIC-style score on the chain's log marginal likelihood; the highest wins.")
-        rows = [[int(k), v, int(k) == sel["chosen"]] for k, v in sel["scores"].items()]
-        page.table(["modes", "score", "chosen"], rows, kind="mode-selection")
-    page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
-                                       _hyperparameter_rows(report), kind="hyperparameters")
     if evaluation is not None:
         page.section("Classification against ground truth",
                      f"{evaluation.get('n_judged')} samples judged, {evaluation.get('n_ambiguous_left_out', 0)} "
@@ -80,6 +73,13 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
                           ("likelihood_trace.png", "Likelihood and fraction of labels changed per EM sweep")):
         if (out / name).is_file():
             page.figure(out / name, caption)
+    sel = report.get("mode_selection")
+    if sel:
+        page.section("Number of modes", "BIC-style score on the chain's log marginal likelihood; the highest wins.")
+        rows = [[int(k), v, int(k) == sel["chosen"]] for k, v in sel["scores"].items()]
+        page.table(["modes", "score", "chosen"], rows, kind="mode-selection")
+    page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
+                                       _hyperparameter_rows(report), kind="hyperparameters")
     page.section("Summary").json(report, "report")
     if evaluation is not None:
         page.json(evaluation, "evaluation")
