@@ -351,8 +351,8 @@ class MultimodalGP(BaseEstimator):
     def to_compensator(self, max_support: int = 1000, seed: int = 0):
         """The passive position-only feedforward tau_ff(q) = grad V(q) of the nominal mode, fitted
         to :meth:`nominal_torque` on up to ``max_support`` support positions (random subset,
-        ``seed``). See :func:`mmgp.compensator.field.compensator_from_model`."""
-        from .compensator.field import compensator_from_model
+        ``seed``). See :func:`mmgp.compensator.fit.compensator_from_model`."""
+        from .compensator.fit import compensator_from_model
 
         check_is_fitted(self, "support_X_")
         return compensator_from_model(self, max_support=max_support, seed=seed)
