@@ -204,7 +204,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
         if m is None:
             raise InputError(f"unreadable CSV file ({describe(exc)})", file=path) from None
         expected, line, saw = (int(g) for g in m.groups())
-        row = sum(1 for x in lines[h + 1:h + line] if x.strip()) - 1
+        row = sum(1 for x in lines[h + 1:h + line] if x.strip())
         raise InputError(f"line {h + 1 + line} has {saw} fields, expected {expected} like the rows before",
                          file=path, row=row) from None
     df.attrs["decimal"] = decimal
@@ -239,7 +239,7 @@ def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
                          file=path, column=col)
     else:
         s = s.astype(object)
-        num = pd.to_numeric(s, errors="coerce")
+        num = pd.to_numeric(_decimal_points(s, df.attrs.get("decimal", ".")), errors="coerce")
         if num.dtype.kind not in "biuf":
             raise InputError(f"expected real numbers, found values of type {num.dtype}", file=path, column=col)
         bad = (num.isna() & s.notna()).to_numpy()
@@ -251,9 +251,17 @@ def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
     finite = np.isfinite(arr)
     if not finite.all():
         row = int(np.flatnonzero(~finite)[0])
-        found = "an empty cell" if np.isnan(arr[row]) else arr[row]
+        found = "a missing value (empty or NaN)" if np.isnan(arr[row]) else arr[row]
         raise InputError(f"expected a finite number, found {found}", file=path, column=col, row=row)
     return arr
+
+
+def _decimal_points(s: pd.Series, decimal: str) -> pd.Series:
+    """Text cells of a decimal-comma file with '.' as decimal mark; a cell that has a point
+    already is ambiguous there (2.500 may be a thousands mark) and becomes NaN (refused)."""
+    if decimal == ".":
+        return s
+    return s.map(lambda v: (np.nan if "." in v else v.replace(",", ".")) if isinstance(v, str) else v)
 
 
 def _decimal_hint(df: pd.DataFrame, cell) -> str:
