@@ -1,4 +1,4 @@
-"""Log and label reading (mmgp.io) against CONTRACT section 1, and atomic outputs.
+"""Log and label reading (mmgp.data.logs) against CONTRACT section 1 (outputs: test_outputs.py).
 
 Every bad input must give exactly one InputError that names the file and, where one exists,
 the column and the 0-based data row; the input file must be left byte-for-byte unchanged.
@@ -8,7 +8,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import stat
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,6 @@ import pyarrow.parquet as pq
 import pytest
 
 from mmgp.errors import InputError
-from mmgp.data.outputs import atomic_output_dir, atomic_write_bytes, write_table
 from mmgp.data.logs import read_labels, read_log, write_log
 
 
@@ -355,119 +353,6 @@ def test_labels_without_label_columns(tmp_path):
 def test_labels_missing_t(tmp_path):
     p = write(labels_frame().drop(columns="t"), tmp_path / "labels.csv")
     expect_error(lambda: read_labels(p), p, column="t")
-
-
-# ---------------------------------------------------------------------------------------------
-# Atomic outputs
-# ---------------------------------------------------------------------------------------------
-
-def entries(folder: Path) -> list[str]:
-    return sorted(x.name for x in folder.iterdir())
-
-
-def test_atomic_dir_success(tmp_path):
-    out = tmp_path / "out"
-    with atomic_output_dir(out) as d:
-        assert d != out and not out.exists()
-        (d / "a.txt").write_text("hello")
-    assert (out / "a.txt").read_text() == "hello"
-    assert entries(tmp_path) == ["out"]
-
-
-def test_atomic_dir_failure_leaves_nothing(tmp_path):
-    out = tmp_path / "out"
-    with pytest.raises(RuntimeError):
-        with atomic_output_dir(out) as d:
-            (d / "a.txt").write_text("partial")
-            raise RuntimeError("boom")
-    assert entries(tmp_path) == []
-
-
-def test_atomic_dir_keyboard_interrupt_leaves_nothing(tmp_path):
-    out = tmp_path / "out"
-    with pytest.raises(KeyboardInterrupt):
-        with atomic_output_dir(out) as d:
-            (d / "a.txt").write_text("partial")
-            raise KeyboardInterrupt
-    assert entries(tmp_path) == []
-
-
-def test_atomic_dir_refuses_non_empty_without_force(tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
-    entered = []
-    with pytest.raises(InputError) as info:
-        with atomic_output_dir(out):
-            entered.append(1)
-    assert not entered
-    assert str(out) in str(info.value)
-    assert entries(out) == ["old.txt"] and (out / "old.txt").read_text() == "old"
-    assert entries(tmp_path) == ["out"]
-
-
-def test_atomic_dir_accepts_empty_existing(tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    with atomic_output_dir(out) as d:
-        (d / "new.txt").write_text("new")
-    assert entries(out) == ["new.txt"]
-    assert entries(tmp_path) == ["out"]
-
-
-def test_atomic_dir_refuses_file(tmp_path):
-    out = tmp_path / "out"
-    out.write_text("x")
-    with pytest.raises(InputError):
-        with atomic_output_dir(out, force=True):
-            pass
-    assert out.read_text() == "x"
-
-
-def test_atomic_dir_force_replaces_only_on_success(tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
-    (out / "sub").mkdir()
-    (out / "sub" / "deep.txt").write_text("deep")
-    with pytest.raises(ValueError):
-        with atomic_output_dir(out, force=True) as d:
-            (d / "new.txt").write_text("new")
-            raise ValueError("fails half-way")
-    assert entries(out) == ["old.txt", "sub"]
-    assert (out / "sub" / "deep.txt").read_text() == "deep"
-    assert entries(tmp_path) == ["out"]
-    with atomic_output_dir(out, force=True) as d:
-        (d / "new.txt").write_text("new")
-        assert (out / "old.txt").exists()  # old content stays until the new one is complete
-    assert entries(out) == ["new.txt"]
-    assert entries(tmp_path) == ["out"]
-
-
-@pytest.fixture
-def umask022():
-    old = os.umask(0o022)
-    yield
-    os.umask(old)
-
-
-def test_output_modes_under_umask_022(tmp_path, umask022):
-    out = tmp_path / "out"
-    with atomic_output_dir(out) as d:
-        write_table(d / "labels.parquet", pd.DataFrame({"t": [0.0, 1.0]}), metadata={"k": "v"})
-        write_table(d / "table.csv", pd.DataFrame({"t": [0.0, 1.0]}))
-        atomic_write_bytes(d / "report.json", b"{}")
-        (d / "plain.txt").write_text("x")
-    assert stat.S_IMODE(out.stat().st_mode) == 0o755
-    for name in ("labels.parquet", "table.csv", "report.json", "plain.txt"):
-        assert stat.S_IMODE((out / name).stat().st_mode) == 0o644, name
-    assert entries(out) == ["labels.parquet", "plain.txt", "report.json", "table.csv"]
-    assert pq.read_schema(out / "labels.parquet").metadata[b"k"] == b"v"
-
-
-def test_write_log_mode_under_umask_022(tmp_path, umask022):
-    p = write_log(tmp_path / "log.parquet", np.arange(12.0), np.zeros((12, 1)), np.zeros((12, 1)))
-    assert stat.S_IMODE(p.stat().st_mode) == 0o644
 
 
 # ---------------------------------------------------------------------------------------------
