@@ -78,6 +78,7 @@ MAX_TIME_STEP_S = 86_400.0
 SEPARATORS = {",": "','", ";": "';'", "\t": "tab"}
 _DECIMAL_COMMA = re.compile(r"\d,\d")
 _QUOTED = re.compile(r'"[^"]*"')
+_LINE_BREAK = re.compile(r"\r\n|\r|\n")
 _FIELDS = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 
 
@@ -164,7 +165,7 @@ def _csv_separator(header: str, path: Path) -> str:
     found = [s for s in SEPARATORS if s in bare]
     if len(found) > 1:
         raise InputError(f"the header line mixes separators {' and '.join(SEPARATORS[s] for s in found)}: "
-                         "expected one of ',', ';' or tab between column names", file=path, row=None)
+                         "expected one of ',', ';' or tab between column names", file=path)
     if not found and len(bare.split()) > 1:
         raise InputError(f"the header line {one_line(header, 60)!r} separates columns by spaces: "
                          "expected ',', ';' or tab", file=path)
@@ -172,7 +173,10 @@ def _csv_separator(header: str, path: Path) -> str:
 
 
 def _csv_header(header: str, sep: str, path: Path) -> list[str]:
-    names = [c.strip() for c in next(csv.reader([header], delimiter=sep))]
+    try:
+        names = [c.strip() for c in next(csv.reader([header], delimiter=sep, skipinitialspace=True))]
+    except csv.Error as exc:
+        raise InputError(f"unreadable header line ({describe(exc)})", file=path) from None
     names = [c if c else f"Unnamed: {i}" for i, c in enumerate(names)]
     _refuse_duplicates(names, path)
     return names
@@ -183,9 +187,9 @@ def _read_csv(path: Path) -> pd.DataFrame:
     with ';' or tab, a comma between two digits anywhere in the data makes ',' the decimal mark
     (European spreadsheets), else it is '.'."""
     text = _csv_text(path)
-    lines = text.split("\n")
+    lines = _LINE_BREAK.split(text)
     h = next(i for i, line in enumerate(lines) if line.strip())
-    header = lines[h].rstrip("\r")
+    header = lines[h]
     sep = _csv_separator(header, path)
     names = _csv_header(header, sep, path)
     body = "\n".join(lines[h + 1:])
