@@ -12,10 +12,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 from pathlib import Path
 from typing import Callable
 
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, event, settings
 from hypothesis import strategies as st
 
 from mmgp.errors import InputError
@@ -49,7 +50,10 @@ def assert_clean(reader: Callable[[Path], object], path: Path):
         msg = str(err)
         assert "\n" not in msg and "\r" not in msg, msg
         assert err.file == str(path), msg
+        event("InputError: " + re.sub(r"\d+", "N", re.split(r"[:(]", err.message)[0])[:50].strip())
         result = None
+    else:
+        event("read")
     assert digest(path) == before, "the reader changed its input"
     return result
 

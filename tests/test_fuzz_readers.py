@@ -26,6 +26,7 @@ from hypothesis import strategies as st
 from fuzz_strategies import (assert_clean, encoded, fuzz_settings, mutated_bytes, mutated_json,
                              mutated_lines, nasty_values)
 from mmgp.data.logs import MAX_TIME_STEP_S, MIN_SAMPLES, read_labels, read_log
+from mmgp.data.outputs import write_table
 
 # ---------------------------------------------------------------------------------------------
 # Valid files
@@ -60,12 +61,7 @@ def label_frames(draw) -> pd.DataFrame:
 
 
 def write_parquet(df: pd.DataFrame, path: Path, metadata: dict | None = None) -> Path:
-    table = pa.Table.from_pandas(df, preserve_index=False)
-    if metadata:
-        meta = dict(table.schema.metadata or {})
-        meta.update({k.encode(): v.encode() for k, v in metadata.items()})
-        table = table.replace_schema_metadata(meta)
-    pq.write_table(table, path)
+    write_table(path, df, metadata=metadata)
     return path
 
 
@@ -99,13 +95,15 @@ def csv_oracle(text: str) -> dict[str, list[float]]:
     """The columns of a CSV log read by the stated rule with Python's csv module and float():
     the separator is the one of ',', ';', tab in the header line; with ';' or tab a decimal
     comma is allowed; blank lines do not count; a short row leaves cells empty (which only a
-    column the log does not use may have)."""
+    column the log does not use may have); a trailing separator adds nothing."""
     rows = [r for r in csv.reader(io.StringIO(text, newline=""), delimiter=_separator(text), skipinitialspace=True)
             if any(c.strip() for c in r)]
     header = [c.strip() for c in rows[0]]
     decimal_comma = _separator(text) != ","
     cells: dict[str, list[str]] = {name: [] for name in header}
     for r in rows[1:]:
+        while len(r) > len(header) and not r[-1].strip():
+            r.pop()  # an empty field after the last column (a trailing separator)
         assert len(r) <= len(header), r
         for name, cell in zip(header, r + [""] * (len(header) - len(r))):
             cells[name].append(cell.strip().replace(",", ".") if decimal_comma else cell.strip())
@@ -249,9 +247,9 @@ def mutated_tables(draw, df: pd.DataFrame) -> pd.DataFrame:
             except (ValueError, TypeError, ArithmeticError):
                 pass  # an earlier change left values this type cannot take
         elif kind == "cell":
-            col = df[c].astype(object)
-            col.iloc[draw(st.integers(0, len(df) - 1))] = draw(nasty_values())
-            df[c] = col
+            values = df[c].tolist()
+            values[draw(st.integers(0, len(df) - 1))] = draw(nasty_values())
+            df[c] = pd.Series(values, dtype=object, index=df.index)
         elif kind == "rows":
             idx = draw(st.lists(st.integers(0, len(df) - 1), max_size=len(df) + 3))
             df = df.iloc[idx].reset_index(drop=True) if idx or draw(st.booleans()) else df.iloc[:0]

@@ -142,8 +142,10 @@ def _csv_text(path: Path) -> str:
     data = path.read_bytes()
     if data.startswith(b"PAR1"):
         raise InputError("this is a Parquet file with a CSV name: rename it to .parquet", file=path)
-    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise InputError("the text is UTF-16: save the file as UTF-8", file=path)
+    for mark, name in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"),
+                       (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16")):
+        if data.startswith(mark):
+            raise InputError(f"the text is {name}: save the file as UTF-8", file=path)
     if b"\x00" in data:
         line = data[: data.index(b"\x00")].count(b"\n") + 1
         raise InputError(f"binary content (a NUL byte on line {line}): expected CSV text", file=path)

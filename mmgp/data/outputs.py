@@ -80,6 +80,8 @@ def _refuse_inputs(out: Path, inputs: Iterable, folder: bool) -> None:
     """An output must not be an input; an output folder must neither contain nor lie in one."""
     real_out = out.resolve()
     for given in inputs:
+        if given is None:
+            continue
         real_in = Path(given).resolve()
         if _same(real_out, real_in):
             raise InputError(f"--out is the input {given}: writing it would destroy the input; "
