@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from mmgp.errors import InputError
-from mmgp.data.logs import read_labels, read_log, write_log
+from mmgp.data.logs import read_labels, read_log, read_table_header, write_log
 
 
 def good_frame(T=30, n=3, dq=False, ddq=False, seed=0):
@@ -561,3 +561,15 @@ def test_input_error_is_one_line():
     err = InputError("first line\nsecond line", file="a\nb.csv", column="q_0", row=3)
     assert "\n" not in str(err)
     assert str(err) == "file a; b.csv, column 'q_0', row 3: first line; second line"
+
+
+def test_read_table_header_reads_as_read_log_does(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_text(european_csv(good_frame(T=12, n=2), ";"))
+    assert read_table_header(p) == (["t", "q_0", "q_1", "tau_0", "tau_1"], {})
+    p = write(good_frame(T=12, n=1), tmp_path / "log.parquet", metadata={"robot": "panda",
+                                                                       "joint_names": '["j"]'})
+    assert read_table_header(p) == (["t", "q_0", "tau_0"], {"robot": "panda", "joint_names": ["j"]})
+    p = tmp_path / "dup.csv"
+    p.write_text("t,q_0,q_0\n")
+    expect_error(lambda: read_table_header(p), p, column="q_0")
