@@ -79,6 +79,7 @@ SEPARATORS = {",": "','", ";": "';'", "\t": "tab"}
 _DECIMAL_COMMA = re.compile(r"\d,\d")
 _QUOTED = re.compile(r'"[^"]*"')
 _LINE_BREAK = re.compile(r"\r\n|\r|\n")
+_BLANK_LINES = re.compile(r"(?:[ \t\f\v]*(?:\r\n|\r|\n))*")
 _FIELDS = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 
 
@@ -189,12 +190,13 @@ def _read_csv(path: Path) -> pd.DataFrame:
     with ';' or tab, a comma between two digits anywhere in the data makes ',' the decimal mark
     (European spreadsheets), else it is '.'."""
     text = _csv_text(path)
-    lines = _LINE_BREAK.split(text)
-    h = next(i for i, line in enumerate(lines) if line.strip())
-    header = lines[h]
+    start = _BLANK_LINES.match(text).end()
+    h = len(_LINE_BREAK.findall(text, 0, start))  # lines before the header
+    brk = _LINE_BREAK.search(text, start)
+    header, body = (text[start:brk.start()], text[brk.end():]) if brk else (text[start:], "")
+    del text
     sep = _csv_separator(header, path)
     names = _csv_header(header, sep, path)
-    body = "\n".join(lines[h + 1:])
     decimal = "," if sep != "," and _DECIMAL_COMMA.search(body) else "."
     try:
         with warnings.catch_warnings():
@@ -210,7 +212,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
         if m is None:
             raise InputError(f"unreadable CSV file ({describe(exc)})", file=path) from None
         expected, line, saw = (int(g) for g in m.groups())
-        row = sum(1 for x in lines[h + 1:h + line] if x.strip())
+        row = sum(1 for x in _LINE_BREAK.split(body)[:line - 1] if x.strip())
         raise InputError(f"line {h + 1 + line} has {saw} fields, expected {expected} like the rows before",
                          file=path, row=row) from None
     df.attrs["decimal"] = decimal
