@@ -76,10 +76,10 @@ _COL = re.compile(r"^(q|dq|ddq|tau)_(\d+)$")
 MAX_TIME_STEP_S = 86_400.0
 
 SEPARATORS = {",": "','", ";": "';'", "\t": "tab"}
-_DECIMAL_COMMA = re.compile(r"\d,\d")
+_DECIMAL_COMMA = re.compile(rb"\d,\d")
 _QUOTED = re.compile(r'"[^"]*"')
-_LINE_BREAK = re.compile(r"\r\n|\r|\n")
-_BLANK_LINES = re.compile(r"(?:[ \t\f\v]*(?:\r\n|\r|\n))*")
+_LINE_BREAK = re.compile(rb"\r\n|\r|\n")
+_BLANK_LINES = re.compile(rb"(?:[ \t\f\v]*(?:\r\n|\r|\n))*")
 _FIELDS = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 
 
@@ -138,8 +138,9 @@ def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
     return df, meta
 
 
-def _csv_text(path: Path) -> str:
-    """The file's text: UTF-8 (a byte-order mark is allowed) without NUL bytes."""
+def _csv_bytes(path: Path) -> bytes:
+    """The file's bytes, checked to be UTF-8 text without NUL bytes (and without the UTF-8
+    byte-order mark, which is allowed). Bytes, not text: pandas parses them twice as fast."""
     data = path.read_bytes()
     if data.startswith(b"PAR1"):
         raise InputError("this is a Parquet file with a CSV name: rename it to .parquet", file=path)
@@ -151,15 +152,16 @@ def _csv_text(path: Path) -> str:
         line = data[: data.index(b"\x00")].count(b"\n") + 1
         raise InputError(f"binary content (a NUL byte on line {line}): expected CSV text", file=path)
     try:
-        text = data.decode("utf-8-sig")
+        data.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
         raise InputError(f"not UTF-8 text (byte 0x{data[exc.start]:02X} on line {line}): expected a CSV "
                          "file saved as UTF-8", file=path) from None
-    if not text.strip():
+    data = data.removeprefix(b"\xef\xbb\xbf")
+    if not data or data.isspace():
         raise InputError("the file is empty: expected a header line such as 't,q_0,tau_0' and data rows",
                          file=path)
-    return text
+    return data
 
 
 def _csv_separator(header: str, path: Path) -> str:
@@ -189,12 +191,12 @@ def _read_csv(path: Path) -> pd.DataFrame:
     """A CSV table. Rule: the separator is the one of ',', ';' or tab found in the header line;
     with ';' or tab, a comma between two digits anywhere in the data makes ',' the decimal mark
     (European spreadsheets), else it is '.'."""
-    text = _csv_text(path)
-    start = _BLANK_LINES.match(text).end()
-    h = len(_LINE_BREAK.findall(text, 0, start))  # lines before the header
-    brk = _LINE_BREAK.search(text, start)
-    header, body = (text[start:brk.start()], text[brk.end():]) if brk else (text[start:], "")
-    del text
+    data = _csv_bytes(path)
+    start = _BLANK_LINES.match(data).end()
+    h = len(_LINE_BREAK.findall(data, 0, start))  # lines before the header
+    brk = _LINE_BREAK.search(data, start)
+    header = data[start:brk.start() if brk else len(data)].decode("utf-8")
+    body = memoryview(data)[brk.end():] if brk else memoryview(b"")
     sep = _csv_separator(header, path)
     names = _csv_header(header, sep, path)
     decimal = "," if sep != "," and _DECIMAL_COMMA.search(body) else "."
@@ -202,8 +204,8 @@ def _read_csv(path: Path) -> pd.DataFrame:
         with warnings.catch_warnings():
             # pandas drops the extra fields of a long first row with only a warning
             warnings.simplefilter("error", pd.errors.ParserWarning)
-            df = pd.read_csv(io.StringIO(body), sep=sep, decimal=decimal, header=None, names=names,
-                             index_col=False, skipinitialspace=True, low_memory=False)
+            df = pd.read_csv(io.BytesIO(body), encoding="utf-8", sep=sep, decimal=decimal, header=None,
+                             names=names, index_col=False, skipinitialspace=True, low_memory=False)
     except pd.errors.ParserWarning:
         raise InputError(f"the first data row has more fields than the {len(names)} of the header",
                          file=path, row=0) from None
