@@ -222,47 +222,53 @@ def _retyped(col: pd.Series, kind: str, draw) -> pd.Series:
     raise AssertionError(kind)
 
 
+def _mutate_table(draw, df: pd.DataFrame, c, kind: str) -> pd.DataFrame:
+    """One change ``kind`` of ``df`` at column ``c`` (see :func:`mutated_tables`)."""
+    cols = list(df.columns)
+    if kind == "drop":
+        df = df.drop(columns=c)
+    elif kind == "rename":
+        new = draw(st.one_of(st.sampled_from(cols + ["T", " t", "time", "q_00", "q_-1", "q_9", "tau_7",
+                                                     "dq_0", "ddq_5", ""]), st.text(max_size=6)))
+        df.columns = [new if x == c else x for x in cols]
+    elif kind == "retype":
+        kind = draw(st.sampled_from(["float32", "int", "str", "decimal", "bool", "timestamp",
+                                     "category", "list", "nullable"]))
+        df[c] = _retyped(df[c], kind, draw)
+    elif kind == "cell":
+        values = df[c].tolist()
+        values[draw(st.integers(0, len(df) - 1))] = draw(nasty_values())
+        df[c] = pd.Series(values, dtype=object, index=df.index)
+    elif kind == "rows":
+        idx = draw(st.lists(st.integers(0, len(df) - 1), max_size=len(df) + 3))
+        df = df.iloc[idx].reset_index(drop=True) if idx or draw(st.booleans()) else df.iloc[:0]
+    elif kind == "order":
+        df = df[draw(st.permutations(cols))]
+    elif kind == "extra":
+        value = draw(nasty_values()) if draw(st.booleans()) else 0.0
+        df[draw(st.text(max_size=6))] = pd.Series([value] * len(df), dtype=object)
+    elif kind == "jump" and "t" in cols and len(df) > 1:
+        i = draw(st.integers(1, len(df) - 1))
+        t = pd.to_numeric(df["t"], errors="coerce").to_numpy(dtype=float, copy=True)
+        t[i:] += draw(st.sampled_from([MAX_TIME_STEP_S * 0.99, MAX_TIME_STEP_S * 1.01, 1.7e9, -1.0]))
+        df["t"] = t
+    return df
+
+
 @st.composite
 def mutated_tables(draw, df: pd.DataFrame) -> pd.DataFrame:
     """``df`` after one or two column-, type- or row-level changes."""
     df = df.copy()
     for _ in range(draw(st.integers(1, 2))):
-        cols = list(df.columns)
-        if not cols:
+        if len(df.columns) == 0:
             break
-        c = draw(st.sampled_from(cols))
+        c = draw(st.sampled_from(list(df.columns)))
         kind = draw(st.sampled_from(["drop", "rename", "retype", "retype", "cell", "rows", "order",
                                      "extra", "jump"]))
-        if kind == "drop":
-            df = df.drop(columns=c)
-        elif kind == "rename":
-            new = draw(st.one_of(st.sampled_from(cols + ["T", " t", "time", "q_00", "q_-1", "q_9", "tau_7",
-                                                         "dq_0", "ddq_5", ""]), st.text(max_size=6)))
-            df.columns = [new if x == c else x for x in cols]
-        elif kind == "retype":
-            kind = draw(st.sampled_from(["float32", "int", "str", "decimal", "bool", "timestamp",
-                                         "category", "list", "nullable"]))
-            try:
-                df[c] = _retyped(df[c], kind, draw)
-            except (ValueError, TypeError, ArithmeticError):
-                pass  # an earlier change left values this type cannot take
-        elif kind == "cell":
-            values = df[c].tolist()
-            values[draw(st.integers(0, len(df) - 1))] = draw(nasty_values())
-            df[c] = pd.Series(values, dtype=object, index=df.index)
-        elif kind == "rows":
-            idx = draw(st.lists(st.integers(0, len(df) - 1), max_size=len(df) + 3))
-            df = df.iloc[idx].reset_index(drop=True) if idx or draw(st.booleans()) else df.iloc[:0]
-        elif kind == "order":
-            df = df[draw(st.permutations(cols))]
-        elif kind == "extra":
-            value = draw(nasty_values()) if draw(st.booleans()) else 0.0
-            df[draw(st.text(max_size=6))] = pd.Series([value] * len(df), dtype=object)
-        elif kind == "jump" and "t" in cols and len(df) > 1:
-            i = draw(st.integers(1, len(df) - 1))
-            t = pd.to_numeric(df["t"], errors="coerce").to_numpy(dtype=float, copy=True)
-            t[i:] += draw(st.sampled_from([MAX_TIME_STEP_S * 0.99, MAX_TIME_STEP_S * 1.01, 1.7e9, -1.0]))
-            df["t"] = t
+        try:
+            df = _mutate_table(draw, df, c, kind)
+        except (ValueError, TypeError, AttributeError, KeyError, ArithmeticError):
+            pass  # a change that an earlier one made impossible (e.g. on duplicated names)
         if len(df) == 0:
             break
     return df

@@ -525,7 +525,7 @@ def test_first_row_with_extra_fields(tmp_path):
     lines = p.read_text().splitlines()
     lines[1] += ",9"
     p.write_text("\n".join(lines) + "\n")
-    expect_error(lambda: read_log(p), p, row=0, contains="more fields")
+    expect_error(lambda: read_log(p), p, row=0, contains="the first data row has 4 fields but the header has 3")
 
 
 def test_row_with_missing_field(tmp_path):

@@ -187,6 +187,22 @@ def _csv_header(header: str, sep: str, path: Path) -> list[str]:
     return names
 
 
+def _check_first_row(body: memoryview, sep: str, n_names: int, path: Path) -> None:
+    """pandas silently drops what a first data row has beyond the header (or takes it for an
+    index), so that row is counted here."""
+    start = _BLANK_LINES.match(body).end()
+    brk = _LINE_BREAK.search(body, start)
+    first = bytes(body[start:brk.start() if brk else len(body)]).decode("utf-8")
+    if not first:
+        return
+    try:
+        n = len(next(csv.reader([first], delimiter=sep, skipinitialspace=True)))
+    except csv.Error as exc:
+        raise InputError(f"unreadable first data row ({describe(exc)})", file=path, row=0) from None
+    if n > n_names:
+        raise InputError(f"the first data row has {n} fields but the header has {n_names}", file=path, row=0)
+
+
 def _read_csv(path: Path) -> pd.DataFrame:
     """A CSV table. Rule: the separator is the one of ',', ';' or tab found in the header line;
     with ';' or tab, a comma between two digits anywhere in the data makes ',' the decimal mark
@@ -199,6 +215,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
     body = memoryview(data)[brk.end():] if brk else memoryview(b"")
     sep = _csv_separator(header, path)
     names = _csv_header(header, sep, path)
+    _check_first_row(body, sep, len(names), path)
     decimal = "," if sep != "," and _DECIMAL_COMMA.search(body) else "."
     try:
         with warnings.catch_warnings():
@@ -206,7 +223,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
             warnings.simplefilter("error", pd.errors.ParserWarning)
             df = pd.read_csv(io.BytesIO(body), encoding="utf-8", sep=sep, decimal=decimal, header=None,
                              names=names, index_col=False, skipinitialspace=True, low_memory=False)
-    except pd.errors.ParserWarning:
+    except pd.errors.ParserWarning:  # what _check_first_row does not see (a quoted line break)
         raise InputError(f"the first data row has more fields than the {len(names)} of the header",
                          file=path, row=0) from None
     except (pd.errors.ParserError, ValueError) as exc:
