@@ -573,3 +573,14 @@ def test_read_table_header_reads_as_read_log_does(tmp_path):
     p = tmp_path / "dup.csv"
     p.write_text("t,q_0,q_0\n")
     expect_error(lambda: read_table_header(p), p, column="q_0")
+
+
+def test_integer_too_large_for_float64(tmp_path):
+    # pandas keeps a 400-digit cell as a Python int, and pd.to_numeric then raised OverflowError
+    p = write(good_frame(T=12, n=1), tmp_path / "log.csv")
+    lines = p.read_text().splitlines()
+    cells = lines[1 + 3].split(",")
+    cells[1] = "9" * 400
+    lines[1 + 3] = ",".join(cells)
+    p.write_text("\n".join(lines) + "\n")
+    expect_error(lambda: read_log(p), p, column="q_0", row=3, contains="found inf")

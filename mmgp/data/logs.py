@@ -266,7 +266,7 @@ def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
                          file=path, column=col)
     else:
         s = s.astype(object)
-        num = pd.to_numeric(_decimal_points(s, df.attrs.get("decimal", ".")), errors="coerce")
+        num = _to_numbers(_decimal_points(s, df.attrs.get("decimal", ".")))
         if num.dtype.kind not in "biuf":
             raise InputError(f"expected real numbers, found values of type {num.dtype}", file=path, column=col)
         bad = (num.isna() & s.notna()).to_numpy()
@@ -281,6 +281,24 @@ def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
         found = "a missing value (empty or NaN)" if np.isnan(arr[row]) else arr[row]
         raise InputError(f"expected a finite number, found {found}", file=path, column=col, row=row)
     return arr
+
+
+def _to_numbers(s: pd.Series) -> pd.Series:
+    """pd.to_numeric with NaN for what is not a number and +-inf for integers beyond float64
+    (CSV cells of 400 digits arrive as Python ints, which pandas refuses with OverflowError)."""
+    try:
+        return pd.to_numeric(s, errors="coerce")
+    except OverflowError:
+        return pd.to_numeric(s.map(_float_or_inf), errors="coerce")
+
+
+def _float_or_inf(v):
+    if isinstance(v, int) and not isinstance(v, bool):
+        try:
+            return float(v)
+        except OverflowError:
+            return np.inf if v > 0 else -np.inf
+    return v
 
 
 def _decimal_points(s: pd.Series, decimal: str) -> pd.Series:
