@@ -584,3 +584,11 @@ def test_integer_too_large_for_float64(tmp_path):
     lines[1 + 3] = ",".join(cells)
     p.write_text("\n".join(lines) + "\n")
     expect_error(lambda: read_log(p), p, column="q_0", row=3, contains="found inf")
+
+
+@pytest.mark.parametrize("name", ["q_00", "q_\u0660", "q_0\n"])
+def test_near_contract_column_names_are_not_joint_columns(tmp_path, name):
+    # 'q_00' was taken for joint 0 and then looked up as 'q_0': a KeyError (found by fuzzing)
+    df = good_frame(T=12, n=2).rename(columns={"q_0": name})
+    p = write(df, tmp_path / "log.parquet")
+    expect_error(lambda: read_log(p), p, column="q_0")

@@ -67,7 +67,8 @@ class RobotLog:
                        dq=pick(self.dq), ddq=pick(self.ddq))
 
 
-_COL = re.compile(r"^(q|dq|ddq|tau)_(\d+)$")
+# exactly the contract's names: ASCII digits without leading zeros ('q_00', 'q_\u0661' are not q_0, q_1)
+_COL = re.compile(r"(q|dq|ddq|tau)_(0|[1-9][0-9]*)")
 
 # A log may pause (an e-stop, a break, recording resumed the next morning), but a step in 't'
 # longer than a day is not a pause inside one recording: it is a clock change (epoch seconds
@@ -342,11 +343,11 @@ def _joint_columns(cols: list, path: Path) -> tuple[int, dict[str, dict[int, str
     """(n joints, {kind: {joint: column}}) of a log's columns, checked against CONTRACT section 1."""
     groups: dict[str, dict[int, str]] = {"q": {}, "dq": {}, "ddq": {}, "tau": {}}
     for c in cols:
-        m = _COL.match(str(c))
+        m = _COL.fullmatch(str(c))
         if m:
             groups[m.group(1)][int(m.group(2))] = c
     if not groups["q"]:
-        unknown = [str(c) for c in cols if c != "t" and not _COL.match(str(c))]
+        unknown = [str(c) for c in cols if c != "t" and not _COL.fullmatch(str(c))]
         extra = f"; unrecognised columns: {one_line(str(unknown[:5]), 120)}" if unknown else ""
         raise InputError(f"no joint position columns 'q_0'..'q_(n-1)' found{extra}", file=path, column="q_0")
     n = max(groups["q"]) + 1
