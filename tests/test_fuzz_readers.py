@@ -202,6 +202,8 @@ def _retyped(col: pd.Series, kind: str, draw) -> pd.Series:
     if kind == "float32":
         return col.astype(np.float32)
     if kind == "int":
+        if col.dtype.kind not in "biuf":
+            raise TypeError("only numbers round to integers")
         return col.round().astype(np.int64)
     if kind == "str":
         return col.map(repr).astype(object)
