@@ -61,7 +61,8 @@ class Effect:
     or "link"), ``supersedes`` (effects on the same index whose atoms are a subset of ours),
     ``requires`` (effects on the same index a model must hold before this one may extend it),
     ``distal_tiebreak`` (of indices the data cannot tell apart, report the most distal),
-    ``linearised`` (columns depend on a point re-estimated from the fit: :meth:`relinearise`).
+    ``linearised`` (columns depend on a point re-estimated from the fit: :meth:`relinearise`),
+    ``switchable`` (may take one of two values over the log: a mode-switch candidate).
 
     By default parameter i is the coefficient of atom i (``params``/``coefficients``); effects
     with another map override both.
@@ -75,6 +76,7 @@ class Effect:
     requires: ClassVar[tuple[str, ...]] = ()
     distal_tiebreak: ClassVar[bool] = False
     linearised: ClassVar[bool] = False
+    switchable: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -321,6 +323,7 @@ class Payload(Effect):
     # a mass on joint i+1's axis loads the joints exactly as the same mass on link i does
     distal_tiebreak = True
     linearised = True
+    switchable = True  # attached and removed during a log
 
     def atoms(self):
         return tuple(("pl", self.index, i) for i in range(4))
