@@ -245,3 +245,46 @@ def test_learner_alone_separates_pushes(cases):
     assert (got & (lab == 1)).sum() > 0.9 * (lab == 1).sum()
     assert (got & (lab == 0)).sum() < 0.2 * got.sum()
     assert res.info_["separation"]["em_points"] <= 500
+
+
+def test_scan_alone_and_no_separation(cases):
+    """separate="scan": the robust scan's spans alone match the simulator's pushes (the learner
+    never runs) and friction fitted on the rest is right; separate="none": nothing is flagged or
+    left out."""
+    spec, rec, truth = cases["actuator_pushes_coulomb"]
+    res, _ = _run(cases["actuator_pushes_coulomb"], separate="scan")
+    f = _effects(res)
+    assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "lever_joint")]
+    assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
+    lab = np.interp(res.labels_["t"], rec.t, rec.labels["disturbed"]).round()
+    got = res.labels_["disturbed"] == 1
+    assert (got & (lab == 1)).sum() > 0.7 * (lab == 1).sum()
+    assert (got & (lab == 0)).sum() < 0.1 * got.sum()
+    assert res.info_["separation"]["method"] == "robust chi-square scan"
+    assert "em_seconds" not in res.info_["separation"]
+    res, _ = _run(cases["actuator_pushes_coulomb"], separate="none")
+    assert not [x for x in res.findings_ if x["effect"] == "external_disturbance"]
+    assert res.fit_stages_["samples_excluded_as_disturbed"] == 0 and res.labels_ is None
+
+
+def test_diagnoser_is_a_scikit_learn_estimator(cases, tmp_path):
+    """Settings stored unchanged, clone works, parts are swappable, unfitted use is refused."""
+    from sklearn.base import clone
+    from sklearn.exceptions import NotFittedError
+
+    from mmgp.data.differentiation import SavitzkyGolay
+    from mmgp.errors import InputError
+
+    d = Diagnoser(effects=["coulomb_friction"], selector=ForwardCVSelector(alpha=0.01), gp=False, plots=False)
+    c = clone(d)
+    assert c.get_params()["effects"] == ["coulomb_friction"] and c.get_params()["selector__alpha"] == 0.01
+    with pytest.raises(NotFittedError):
+        c.report(tmp_path)
+    with pytest.raises(InputError, match="separate"):
+        clone(d).set_params(separate="magic").fit(None, None)
+    spec, rec, truth = cases["panda_coulomb_j4"]
+    # a logged-velocity differentiator part: ddq from dq with a fixed 0.05 s window
+    fitted = c.set_params(differentiator=SavitzkyGolay(window_s=0.05)).fit(C.recording_to_log(rec),
+                                                                            C.nominal_robot(spec))
+    assert fitted is c and fitted.info_["n_candidates"] == 7
+    assert [(x["effect"], x["joint"]) for x in fitted.findings_] == [("coulomb_friction", "panda_joint4")]
