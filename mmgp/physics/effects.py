@@ -162,40 +162,50 @@ class Effect:
         return f"joint {self.index} ({ctx.joint_names[self.index]}): {what}"
 
 
-class CoulombFriction(Effect):
+class _JointColumnEffect(Effect):
+    """An effect of one column acting on its own joint: ``coefficient * values(ctx)``, the atom
+    ``(kind, joint)``; ``nonnegative``: the coefficient is a magnitude (>= 0)."""
+
+    kind: ClassVar[str] = ""
+    nonnegative: ClassVar[bool] = True
+
+    def atoms(self):
+        return ((self.kind, self.index),)
+
+    def columns(self, ctx):
+        return [_on_joint(ctx, self.index, self.values(ctx))]
+
+    @property
+    def nonneg(self):
+        return self.atoms() if self.nonnegative else ()
+
+    def values(self, ctx: Context) -> np.ndarray:
+        """(T,) the column on the effect's joint."""
+        raise NotImplementedError
+
+
+class CoulombFriction(_JointColumnEffect):
     """tau_c * tanh(dq / v_s): dry friction opposing motion (tau_c >= 0, N*m)."""
 
     name = "coulomb_friction"
     label = "Coulomb friction"
     units = {"tau_c": "N*m"}
+    kind = "sign"
 
-    def atoms(self):
-        return (("sign", self.index),)
-
-    def columns(self, ctx):
-        return [_on_joint(ctx, self.index, _smooth_sign(ctx, self.index))]
-
-    @property
-    def nonneg(self):
-        return self.atoms()
+    def values(self, ctx):
+        return _smooth_sign(ctx, self.index)
 
 
-class ViscousFriction(Effect):
+class ViscousFriction(_JointColumnEffect):
     """b * dq (b >= 0, N*m*s/rad)."""
 
     name = "viscous_friction"
     label = "viscous friction"
     units = {"b": "N*m*s/rad"}
+    kind = "dq"
 
-    def atoms(self):
-        return (("dq", self.index),)
-
-    def columns(self, ctx):
-        return [_on_joint(ctx, self.index, ctx.dq[:, self.index])]
-
-    @property
-    def nonneg(self):
-        return self.atoms()
+    def values(self, ctx):
+        return ctx.dq[:, self.index]
 
 
 class LoadDependentFriction(Effect):
@@ -224,22 +234,16 @@ class LoadDependentFriction(Effect):
         return self.atoms()
 
 
-class Armature(Effect):
+class Armature(_JointColumnEffect):
     """inertia * ddq: reflected rotor inertia (kg*m^2 >= 0)."""
 
     name = "armature"
     label = "armature (rotor inertia)"
     units = {"inertia": "kg*m^2"}
+    kind = "ddq"
 
-    def atoms(self):
-        return (("ddq", self.index),)
-
-    def columns(self, ctx):
-        return [_on_joint(ctx, self.index, ctx.ddq[:, self.index])]
-
-    @property
-    def nonneg(self):
-        return self.atoms()
+    def values(self, ctx):
+        return ctx.ddq[:, self.index]
 
 
 class JointSpring(Effect):
@@ -296,18 +300,17 @@ class EncoderOffset(Effect):
         return [int(i) for i in np.flatnonzero(col > 1e-9 * max(col.max(), 1e-300))]
 
 
-class TorqueOffset(Effect):
+class TorqueOffset(_JointColumnEffect):
     """Constant bias of the logged torque: logged tau = true tau + offset (N*m)."""
 
     name = "torque_offset"
     label = "a torque-sensor offset"
     units = {"offset": "N*m"}
+    kind = "one"
+    nonnegative = False
 
-    def atoms(self):
-        return (("one", self.index),)
-
-    def columns(self, ctx):
-        return [_on_joint(ctx, self.index, 1.0)]
+    def values(self, ctx):
+        return np.ones(ctx.T)
 
 
 class Payload(Effect):
