@@ -80,7 +80,7 @@ def test_weighted_fold_grams_match_direct_least_squares():
         assert g.nte[k].tolist() == [(W[te, j] > 0).sum() for j in range(n)]
 
 
-def test_paired_p_matches_sign_flip_enumeration():
+def test_signed_rank_p_matches_sign_flip_enumeration():
     """The one-sided signed-rank p-value equals the exact permutation p-value (all 2^K sign flips)."""
     import itertools
 

@@ -63,8 +63,9 @@ class FoldGrams:
 
     ``A``: (T, n, P) atom columns, ``r``: (T, n) residual, ``use``: (T,) bool samples to use,
     ``folds``: list of (train_idx, test_idx), ``W``: optional (T, n) non-negative weights per
-    sample and joint. Stores per-fold train/test Grams (K, n, P, P), cross terms (K, n, P), sums
-    of squares (K, n) and test-sample counts per joint ``nte`` (K, n).
+    sample and joint. Stores the all-data Gram ``Gall`` (n, P, P) and cross term ``call`` (n, P),
+    per fold the training part's ``Gtr``/``ctr`` and the test block's ``Gte``/``cte``, its sum
+    of squares ``yte`` (K, n) and test-sample counts per joint ``nte`` (K, n).
     """
 
     def __init__(self, A: np.ndarray, r: np.ndarray, use: np.ndarray, folds, W: np.ndarray | None = None):
@@ -76,13 +77,12 @@ class FoldGrams:
         # per joint, weighted and contiguous in time: the fold sums below slice rows only
         Aw = np.ascontiguousarray(np.transpose(A * sw[:, :, None], (1, 0, 2)))
         rw = np.ascontiguousarray((r * sw).T)
-        self.Gall, self.call, self.yall, self.nall = _weighted_sums(Aw, rw, sw, np.flatnonzero(use))
+        self.Gall, self.call, _, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(use))
         self.Gte = np.zeros((K, n, P, P))
         self.cte = np.zeros((K, n, P))
         self.yte = np.zeros((K, n))
         self.Gtr = np.zeros((K, n, P, P))
         self.ctr = np.zeros((K, n, P))
-        self.ytr = np.zeros((K, n))
         self.nte = np.zeros((K, n))
         for k, (tr, te) in enumerate(folds):
             self.Gte[k], self.cte[k], self.yte[k], self.nte[k] = _weighted_sums(Aw, rw, sw, te[use[te]])
@@ -90,8 +90,8 @@ class FoldGrams:
             # stretch is summed, so K folds cost about two full Gram matrices
             excl = np.ones(T, bool)
             excl[tr] = False
-            Ge, ce, ye, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(excl & use))
-            self.Gtr[k], self.ctr[k], self.ytr[k] = self.Gall - Ge, self.call - ce, self.yall - ye
+            Ge, ce, _, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(excl & use))
+            self.Gtr[k], self.ctr[k] = self.Gall - Ge, self.call - ce
 
     def normal_equations(self, S: Sequence[int], w: np.ndarray, fold: int | None = None):
         """Joint-weighted normal equations (G (|S|, |S|), c (|S|,)) of atoms ``S`` on all data

@@ -95,10 +95,6 @@ class Effect:
     def __hash__(self) -> int:
         return hash((type(self).__name__, self.index))
 
-    @property
-    def key(self) -> tuple:
-        return (self.name, self.index)
-
     # ---- columns and constraints ----------------------------------------------------------
     def atoms(self) -> tuple[AtomKey, ...]:
         raise NotImplementedError
