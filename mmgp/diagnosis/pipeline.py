@@ -174,13 +174,13 @@ class Diagnoser(BaseEstimator):
 
     # ---- fitting --------------------------------------------------------------------------
     def fit(self, log, robot) -> "Diagnoser":
-        """Diagnose ``log`` (a RobotLog or a log file; dq/ddq estimated when absent) against
-        ``robot`` (an mmgp RobotModel, a pinocchio.Model with the log's joints, or an
-        example-robot-data name). Returns self."""
+        """Diagnose ``log`` (a RobotLog, or a log file read against the robot's joints; dq/ddq
+        estimated when absent) against ``robot`` (an mmgp RobotModel, or a pinocchio.Model with
+        the log's joints). Returns self."""
         from threadpoolctl import threadpool_limits
 
         self._check()
-        log, robot = _inputs(log, robot)
+        log = _read(log, robot)
         # the linear algebra here is many small products; multi-threaded BLAS only adds contention
         # (on a busy 2-core machine a 21000 x 90 Gram took 1-3 s threaded and 0.03 s on one thread)
         with threadpool_limits(limits=1, user_api="blas"):
@@ -295,14 +295,11 @@ def _disturbance(pushes, t: np.ndarray) -> dict:
     return disturbance_finding(pushes.disturbed, spans_of(pushes.disturbed, t), evidence)
 
 
-def _inputs(log, robot):
-    """(RobotLog, robot model) from what ``fit`` was given."""
+def _read(log, robot):
+    """The RobotLog ``fit`` was given, or the log file read and checked against ``robot``."""
     from ..data.logs import RobotLog, read_log
-    from ..physics.robot import load_robot
 
-    if isinstance(robot, str):
-        robot = load_robot(robot=robot, log_path=None if isinstance(log, RobotLog) else log)
-    if not isinstance(log, RobotLog):
-        names = getattr(robot, "joint_names", None)
-        log = read_log(log, n_joints=len(names) if names else None, joint_names=names)
-    return log, robot
+    if isinstance(log, RobotLog):
+        return log
+    names = getattr(robot, "joint_names", None)
+    return read_log(log, n_joints=len(names) if names else None, joint_names=names)
