@@ -50,6 +50,17 @@ class Problem:
         return keys, self.lowpass(A)
 
 
+def _longest_window_s(differentiator, dt: float) -> float:
+    """Longest smoothing window (s) a Savitzky-Golay differentiator may use (0.05 s for a part
+    that does not say)."""
+    window = getattr(differentiator, "window_s", None)
+    if window is not None:
+        return float(window)
+    if getattr(differentiator, "cv", False):
+        return float(differentiator.max_window_s)
+    return max(5 * dt, 0.05)
+
+
 def prepare_log(log: RobotLog, differentiator, max_samples: int) -> tuple[RobotLog, int]:
     """The log with derivatives (estimated by ``differentiator`` where not logged), its ends
     trimmed when estimated, thinned evenly to at most ``max_samples``; and its length before
@@ -59,9 +70,11 @@ def prepare_log(log: RobotLog, differentiator, max_samples: int) -> tuple[RobotL
     if log.dq is None or log.ddq is None:
         log = complete_derivatives(log, differentiator)
     if log.dq_estimated or log.ddq_estimated:
-        # polynomial differentiators are poor within a window of the ends; the parallel filter
-        # would spread those errors over a cutoff period, so the ends are dropped first
-        cut = int(np.ceil(0.06 / float(np.median(np.diff(log.t))))) + 2
+        # polynomial differentiators are poor within a window of the ends (the fit there is
+        # extrapolated); the parallel filter would spread those errors over a cutoff period, so
+        # a window (the longest the differentiator may choose) and a margin are dropped first
+        dt = float(np.median(np.diff(log.t)))
+        cut = int(np.ceil((_longest_window_s(differentiator, dt) + 0.01) / dt)) + 2
         if log.n_samples > 10 * cut:
             log = log.subset(np.arange(cut, log.n_samples - cut))
     n_full = log.n_samples
