@@ -201,11 +201,13 @@ def mode_prediction(ms: ModeSwitch, C: np.ndarray) -> np.ndarray:
     return mu
 
 
-def near_switches(ms: ModeSwitch, t: np.ndarray, f_c: float | None) -> np.ndarray:
+def near_switches(ms: ModeSwitch, t: np.ndarray, f_c: float | None, margin_s: float = 0.0) -> np.ndarray:
     """(T,) bool: within the low-pass filter's memory (plus one thinning step) of a switch,
-    where the filtered residual mixes both modes."""
+    where the filtered residual mixes both modes, widened by ``margin_s`` (s: how far estimated
+    accelerations smear the transient a switch causes)."""
     near = np.zeros(len(t), bool)
-    h = int(round(0.5 / (f_c * float(np.median(np.diff(t)))))) if f_c else 0
+    dt = float(np.median(np.diff(t)))
+    h = (int(round(0.5 / (f_c * dt))) if f_c else 0) + int(round(margin_s / dt))
     for i in np.flatnonzero(np.diff(ms.labels) != 0) + 1:
         near[max(0, i - h - ms.step):i + h + ms.step] = True
     return near

@@ -203,8 +203,8 @@ class Diagnoser(BaseEstimator):
 
     def _diagnose(self, log, robot) -> DiagnosisResult:
         laps = _Laps()
-        log, n_full = st.prepare_log(log, self._differentiator(), self.max_samples)
-        prob = st.build_problem(log, robot, n_full, effects=self.effects, payload_links=self.payload_links,
+        log, n_full, smear_s = st.prepare_log(log, self._differentiator(), self.max_samples)
+        prob = st.build_problem(log, robot, n_full, smear_s, effects=self.effects, payload_links=self.payload_links,
                                 n_folds=self.n_folds, **self._settings("sign_noise_factor", "lowpass", "rest_factor"))
         laps("context_s")
         lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2)

@@ -30,7 +30,8 @@ class Problem:
     """What every stage reads: the (thinned) log's arrays, (T, n); ``r_raw`` = tau - tau_rbd and
     ``r`` its low-passed copy (N*m); ``lowpass`` the filter applied to ``r`` and to every column,
     ``f_c`` its cutoff (Hz, None: none); ``M`` (T, n) valid equations; ``folds`` time blocks;
-    ``library`` the candidate effects; ``ctx`` the nominal Context; ``n_samples_in_log``."""
+    ``library`` the candidate effects; ``ctx`` the nominal Context; ``n_samples_in_log``;
+    ``smear_s`` how far (s) estimated derivatives spread a sudden change (0 when logged)."""
 
     t: np.ndarray
     tau: np.ndarray
@@ -43,6 +44,7 @@ class Problem:
     folds: list
     library: list
     n_samples_in_log: int
+    smear_s: float = 0.0
 
     def atoms(self, ctx: Context) -> tuple[list, np.ndarray]:
         """Atom keys and low-passed columns (T, n, P) of the library in ``ctx``."""
@@ -61,31 +63,34 @@ def _longest_window_s(differentiator, dt: float) -> float:
     return max(5 * dt, 0.05)
 
 
-def prepare_log(log: RobotLog, differentiator, max_samples: int) -> tuple[RobotLog, int]:
+def prepare_log(log: RobotLog, differentiator, max_samples: int) -> tuple[RobotLog, int, float]:
     """The log with derivatives (estimated by ``differentiator`` where not logged), its ends
-    trimmed when estimated, thinned evenly to at most ``max_samples``; and its length before
-    thinning."""
+    trimmed when estimated, thinned evenly to at most ``max_samples``; its length before
+    thinning; and half the longest window (s) of the estimated derivatives (0 when logged): how
+    far they smear a sudden change."""
     from ..data.differentiation import complete_derivatives
 
     if log.dq is None or log.ddq is None:
         log = complete_derivatives(log, differentiator)
+    half_window = 0.0
     if log.dq_estimated or log.ddq_estimated:
-        # polynomial differentiators are poor within a window of the ends (the fit there is
-        # extrapolated); the parallel filter would spread those errors over a cutoff period, so
-        # a window (the longest the differentiator may choose) and a margin are dropped first
+        # a polynomial differentiator extrapolates its edge fits over half a window at the ends;
+        # the parallel filter would spread those errors over a cutoff period, so they are dropped
+        # first, with a margin (the 0.035 s that made 0.06 s for the former fixed 0.05 s window)
         dt = float(np.median(np.diff(log.t)))
-        cut = int(np.ceil((_longest_window_s(differentiator, dt) + 0.01) / dt)) + 2
+        half_window = 0.5 * _longest_window_s(differentiator, dt)
+        cut = int(np.ceil((half_window + 0.035) / dt)) + 2
         if log.n_samples > 10 * cut:
             log = log.subset(np.arange(cut, log.n_samples - cut))
     n_full = log.n_samples
     if n_full > max_samples:
         # derivatives were taken at the full rate; thinning only bounds the runtime
         log = log.subset(np.unique(np.linspace(0, n_full - 1, max_samples).round().astype(int)))
-    return log, n_full
+    return log, n_full, half_window
 
 
-def build_problem(log: RobotLog, robot, n_samples_in_log: int, *, effects, payload_links, sign_noise_factor: float,
-                  lowpass: bool, rest_factor: float, n_folds: int) -> Problem:
+def build_problem(log: RobotLog, robot, n_samples_in_log: int, smear_s: float, *, effects, payload_links,
+                  sign_noise_factor: float, lowpass: bool, rest_factor: float, n_folds: int) -> Problem:
     """Nominal model along the log, residual, filter, valid equations, folds and candidates."""
     q, dq, t = log.q, log.dq, log.t
     names = list(getattr(robot, "joint_names", None) or log.joint_names or
@@ -97,7 +102,7 @@ def build_problem(log: RobotLog, robot, n_samples_in_log: int, *, effects, paylo
     return Problem(t=t, tau=log.tau, ctx=ctx, r_raw=r_raw, r=lp(r_raw), lowpass=lp, f_c=f_c,
                    M=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor), folds=time_folds(len(t), n_folds, t, f_c),
                    library=effect_library(ctx, effects=effects, payload_links=payload_links),
-                   n_samples_in_log=n_samples_in_log)
+                   n_samples_in_log=n_samples_in_log, smear_s=smear_s)
 
 
 @dataclass(frozen=True)
@@ -367,7 +372,7 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
     index = {a: i for i, a in enumerate(phys.keys)}
     C = phys.A[:, :, [index[a] for a in ms.effect.atoms()]]
     e = phys.residual(prob.r) - mode_prediction(ms, C)
-    valid = (prob.M > 0) & ~near_switches(ms, prob.t, prob.f_c)[:, None]
+    valid = (prob.M > 0) & ~near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)[:, None]
     disturbed, scan = sep.scan_disturbances(e, prob.t, f_c=prob.f_c, valid=valid, alpha=push_alpha)
     info, em = {**previous.info, **scan}, previous.em
     if method == "auto" and disturbed.any():
