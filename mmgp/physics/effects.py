@@ -176,8 +176,9 @@ class _JointColumnEffect(Effect):
         return self.atoms() if self.nonnegative else ()
 
     def values(self, ctx: Context) -> np.ndarray:
-        """(T,) the column on the effect's joint."""
-        raise NotImplementedError
+        """(T,) the column on the effect's joint; by default the context's state ``kind``
+        ("q", "dq" or "ddq") of that joint."""
+        return getattr(ctx, self.kind)[:, self.index]
 
 
 class CoulombFriction(_JointColumnEffect):
@@ -199,9 +200,6 @@ class ViscousFriction(_JointColumnEffect):
     label = "viscous friction"
     units = {"b": "N*m*s/rad"}
     kind = "dq"
-
-    def values(self, ctx):
-        return ctx.dq[:, self.index]
 
 
 class LoadDependentFriction(Effect):
@@ -237,9 +235,6 @@ class Armature(_JointColumnEffect):
     label = "armature (rotor inertia)"
     units = {"inertia": "kg*m^2"}
     kind = "ddq"
-
-    def values(self, ctx):
-        return ctx.ddq[:, self.index]
 
 
 class JointSpring(Effect):
