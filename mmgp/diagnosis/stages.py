@@ -52,41 +52,41 @@ class Problem:
         return keys, self.lowpass(A)
 
 
-def _longest_window_s(differentiator, dt: float) -> float:
-    """Longest smoothing window (s) a Savitzky-Golay differentiator may use (0.05 s for a part
-    that does not say)."""
-    window = getattr(differentiator, "window_s", None)
-    if window is not None:
-        return float(window)
-    if getattr(differentiator, "cv", False):
-        return float(differentiator.max_window_s)
-    return max(5 * dt, 0.05)
+def _edge_samples(differentiator, log: RobotLog) -> int:
+    """Half the longest window (samples) the differentiator uses on ``log`` (before it fills in
+    the derivatives): estimated derivatives that close to either end come from an extrapolated
+    edge fit, and a sudden change is smeared that far. A part that does not tell its windows
+    (no ``windows(t, x)``) counts as the former fixed 0.05 s window."""
+    signal = log.q if log.dq is None else log.dq  # what complete_derivatives differentiates
+    dt = float(np.median(np.diff(log.t)))
+    windows = getattr(differentiator, "windows", None)
+    longest = int(np.max(windows(log.t, signal))) if windows is not None else int(round(0.05 / dt)) | 1
+    return (longest - 1) // 2
 
 
 def prepare_log(log: RobotLog, differentiator, max_samples: int) -> tuple[RobotLog, int, float]:
     """The log with derivatives (estimated by ``differentiator`` where not logged), its ends
     trimmed when estimated, thinned evenly to at most ``max_samples``; its length before
-    thinning; and half the longest window (s) of the estimated derivatives (0 when logged): how
-    far they smear a sudden change."""
+    thinning; and how far (s) the estimated derivatives smear a sudden change (0 when logged)."""
     from ..data.differentiation import complete_derivatives
 
     if log.dq is None or log.ddq is None:
+        edge = _edge_samples(differentiator, log)
         log = complete_derivatives(log, differentiator)
-    half_window = 0.0
-    if log.dq_estimated or log.ddq_estimated:
-        # a polynomial differentiator extrapolates its edge fits over half a window at the ends;
-        # the parallel filter would spread those errors over a cutoff period, so they are dropped
-        # first, with a margin (the 0.035 s that made 0.06 s for the former fixed 0.05 s window)
-        dt = float(np.median(np.diff(log.t)))
-        half_window = 0.5 * _longest_window_s(differentiator, dt)
-        cut = int(np.ceil((half_window + 0.035) / dt)) + 2
+    else:
+        edge = _edge_samples(differentiator, log) if (log.dq_estimated or log.ddq_estimated) else 0
+    dt = float(np.median(np.diff(log.t)))
+    if edge:
+        # the parallel filter would spread the extrapolated ends over a cutoff period, so they are
+        # dropped first, with a margin (the 0.035 s that made 0.06 s for a fixed 0.05 s window)
+        cut = edge + int(np.ceil(0.035 / dt)) + 2
         if log.n_samples > 10 * cut:
             log = log.subset(np.arange(cut, log.n_samples - cut))
     n_full = log.n_samples
     if n_full > max_samples:
         # derivatives were taken at the full rate; thinning only bounds the runtime
         log = log.subset(np.unique(np.linspace(0, n_full - 1, max_samples).round().astype(int)))
-    return log, n_full, half_window
+    return log, n_full, edge * dt
 
 
 def build_problem(log: RobotLog, robot, n_samples_in_log: int, smear_s: float, *, effects, payload_links,
