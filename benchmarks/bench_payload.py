@@ -1,4 +1,4 @@
-"""Payload identification benchmarks (mmgp.robot.fit_payload on tau - RNEA(nominal)).
+"""Payload identification benchmarks (mmgp.physics.payload.fit_payload on tau - RNEA(nominal)).
 
 Parts (``--part``, default all):
 
@@ -32,7 +32,9 @@ sys.path.insert(0, str(REPO))
 
 import mmgp.sim as sim
 from mmgp.data.logs import RobotLog, read_log
-from mmgp.physics.robot import fit_payload, load_robot, point_mass_parameters
+from mmgp.physics.inertial import point_mass_parameters
+from mmgp.physics.payload import fit_payload
+from mmgp.physics.robot import load_robot
 from mmgp.data.differentiation import SavitzkyGolay, complete_derivatives
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]

@@ -15,10 +15,9 @@ import pytest
 from typer.testing import CliRunner
 
 from mmgp.cli import app
-from mmgp.data.differentiation import complete_derivatives
 from mmgp.data.logs import read_log
 from mmgp.data.outputs import write_table
-from mmgp.diagnosis.pipeline import diagnose
+from mmgp.diagnosis import Diagnoser
 from mmgp.fleet import Fleet, expand_logs
 from mmgp.fleet.drift import flag_drift
 from mmgp.fleet.engine import JOINED_TASK_OPTIONS, RayMissingError, import_ray, ray_session
@@ -83,9 +82,9 @@ def ray_fleet(local_ray, fleet_dir):
 def direct_rows(path) -> list[tuple]:
     """Rows the table must hold for one log, from the diagnosis called here: value, value -+ 2 std."""
     robot = RobotModel.from_urdf(path.parent / "lever.urdf", ["lever_joint"])
-    res = diagnose(complete_derivatives(read_log(path, n_joints=1, joint_names=["lever_joint"])), robot, config=FAST)
+    res = Diagnoser(**FAST).fit(read_log(path, n_joints=1, joint_names=["lever_joint"]), robot)
     rows = []
-    for f in res.findings:
+    for f in res.findings_:
         std = f["evidence"]["params_std"]
         for name, v in f["params"].items():
             vals, sds = (v, std[name]) if isinstance(v, list) else ([v], [std[name]])

@@ -16,24 +16,24 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
              out: Path = out_dir_option(),
              robot: Optional[str] = robot_option(),
              urdf: Optional[Path] = urdf_option(),
+             config: Optional[Path] = typer.Option(None, "--config", help="YAML settings file; its section "
+                                                   "'diagnose:' holds Diagnoser settings."),
              force: bool = force_option(),
              quiet: bool = quiet_option()):
     """Locate the sim-vs-real mismatch, name the missing physics, fit it, show the held-out gain."""
-    from ..diagnosis.pipeline import diagnose as run_diagnose
     from ..data.outputs import atomic_output_dir
-    from ..data.logs import read_log
-    from ..data.differentiation import complete_derivatives
+    from ..config import load_settings
+    from ..diagnosis import Diagnoser
 
     try:
+        diagnoser = Diagnoser(**load_settings(config, "diagnose", Diagnoser))
         robot_model = _robot_for(log, robot, urdf)
         if robot_model is None:
             raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                              "(or name one in the log's metadata)", file=log)
-        lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints, joint_names=robot_model.joint_names))
         with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
             shown.stage("diagnose", None)  # no stages reported yet: elapsed time only
-            res = run_diagnose(lg, robot_model)
-            res.write(tmp)
+            diagnoser.fit(log, robot_model).report(tmp)
     except InputError as exc:
         _fail(exc)
     report = out / "report.md"

@@ -71,7 +71,7 @@ class Fleet(BaseEstimator):
     address (None: a local Ray on this machine); ``workers``: tasks in flight at once (local
     default: the cores available); ``baseline``: first logs per robot that define the drift
     baseline (see :mod:`mmgp.fleet.drift`); ``diagnosis_settings`` / ``train_settings``: dicts
-    passed to the diagnosis (``DiagnoseConfig``) and the training (``MultimodalGP`` settings).
+    passed to the diagnosis (``Diagnoser`` settings) and the training (``MultimodalGP`` settings).
 
     Learned: ``logs_`` (paths), ``outcomes_`` (per log: findings, errors, seconds), ``table_``
     (the fleet table, see :mod:`mmgp.fleet.table`, with ``drift``), ``drift_`` (drift.json),

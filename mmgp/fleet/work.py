@@ -93,14 +93,14 @@ def robot_label(robot, robot_name: str | None) -> str:
 
 
 def diagnose_log(log, robot, settings: dict | None):
-    """Findings (contract section 2) and the whole result as a dict, for one read log.
+    """Findings (contract section 2) and the whole result as a dict, for one read log (its
+    derivatives are estimated by the Diagnoser's own differentiator, as ``mmgp diagnose`` does).
 
-    The one place the fleet calls the diagnosis: when ``Diagnoser`` replaces the function, this
-    becomes ``Diagnoser(**settings).fit(log, robot)`` and its ``findings_``."""
-    from ..diagnosis.pipeline import diagnose
+    The one place the fleet calls the diagnosis."""
+    from ..diagnosis import Diagnoser
 
-    result = diagnose(log, robot, config=settings)
-    return result.findings, result.to_dict()
+    diagnoser = Diagnoser(**(settings or {})).fit(log, robot)
+    return diagnoser.findings_, diagnoser.result_.to_dict()
 
 
 def train_log(path: Path, robot, settings: dict | None) -> dict:
@@ -120,7 +120,6 @@ def train_log(path: Path, robot, settings: dict | None) -> dict:
 
 
 def _process(path: Path, job: dict, out: dict) -> None:
-    from ..data.differentiation import complete_derivatives
     from ..data.logs import read_log
     from ..physics.robot import load_robot
 
@@ -130,7 +129,7 @@ def _process(path: Path, job: dict, out: dict) -> None:
         raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                          "(or name one in the log's metadata)", file=path)
     out["robot"] = robot_label(robot, job.get("robot"))
-    log = complete_derivatives(read_log(path, n_joints=robot.n_joints, joint_names=robot.joint_names))
+    log = read_log(path, n_joints=robot.n_joints, joint_names=robot.joint_names)
     out["findings"], out["diagnosis"] = diagnose_log(log, robot, job.get("diagnosis_settings"))
     if job.get("train"):
         out["training"] = train_log(path, robot, job.get("train_settings"))
