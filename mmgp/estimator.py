@@ -17,18 +17,19 @@ from sklearn.utils.validation import check_is_fitted
 from ._version import __version__
 from .data.logs import MIN_SAMPLES, RobotLog
 from .errors import InputError
-from .gp.exact import ExactGP
 from .gp.hyper import Hyper
+from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .models.features import (build_features, friction_velocity_scale, load_logs, resolve_mean_basis,
                               state_features)
 from .models.report import training_report
 
 MODEL_FORMAT = "mmgp-model"
-MODEL_VERSION = 2
+MODEL_VERSION = 3
 _CHOICES = {"estep": ("ffbs", "gibbs"), "semiparametric": ("residual", "feature", "none"),
-            "mean_basis": ("auto", "rbd", "payload", "none"), "objective": ("loo", "marginal")}
-_POSITIVE_INT = ("max_support", "final_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps",
-                 "average_last", "patience")
+            "mean_basis": ("auto", "rbd", "payload", "none"), "objective": ("loo", "marginal"),
+            "gp_method": GP_METHODS}
+_POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last", "patience",
+                 "n_inducing")
 _NON_NEGATIVE = ("exclusion_s", "block_s")
 _BOOL = ("disturbance", "friction_feature", "calibrate", "ard")
 
@@ -122,8 +123,8 @@ class MultimodalGP(BaseEstimator):
 
     def __init__(self, n_modes=1, disturbance=True, robot=None, *, estep="ffbs", stay_prob=None,
                  rate_hz=None, diff_window_s=None, semiparametric="residual", exclusion_s=1.0, block_s=2.0,
-                 friction_feature=True, mean_basis="auto", max_support=500, final_support=2000,
-                 fit_points=500, fit_iter=50, max_sweeps=40, min_sweeps=6, tol_changed=0.05, patience=3,
+                 friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
+                 gp_method="auto", n_inducing=2000, fit_points=500, fit_iter=50, max_sweeps=40, min_sweeps=6, tol_changed=0.05, patience=3,
                  average_last=5, mode_smoothing_s=4.0, calibrate=True, objective="loo", ard=True,
                  device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
@@ -140,6 +141,8 @@ class MultimodalGP(BaseEstimator):
         self.mean_basis = mean_basis
         self.max_support = max_support
         self.final_support = final_support
+        self.gp_method = gp_method
+        self.n_inducing = n_inducing
         self.fit_points = fit_points
         self.fit_iter = fit_iter
         self.max_sweeps = max_sweeps
@@ -177,6 +180,10 @@ class MultimodalGP(BaseEstimator):
         for key in _BOOL:
             if not isinstance(getattr(self, key), (bool, np.bool_)):
                 bad(key, "true or false")
+        if self.final_support is not None and not (isinstance(self.final_support, (int, np.integer))
+                                                   and not isinstance(self.final_support, bool)
+                                                   and self.final_support >= 1):
+            bad("final_support", "a positive integer, or null (every sample)")
         if self.stay_prob is not None and not (_is_number(self.stay_prob) and 0.0 < self.stay_prob < 1.0):
             bad("stay_prob", "a probability strictly between 0 and 1, or null")
         if self.rate_hz is not None and not (_is_number(self.rate_hz) and self.rate_hz > 0):
@@ -202,7 +209,8 @@ class MultimodalGP(BaseEstimator):
         return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
                     max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
                     patience=self.patience, average_last=self.average_last, max_support=self.max_support,
-                    final_support=self.final_support, fit_points=self.fit_points, fit_iter=self.fit_iter,
+                    final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
+                    fit_points=self.fit_points, fit_iter=self.fit_iter,
                     exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
                     calibrate=self.calibrate, shared_basis=basis_kind == "payload", seed=self.seed,
                     progress=self.progress,
@@ -277,7 +285,9 @@ class MultimodalGP(BaseEstimator):
         self.support_X_, self.support_Y_ = list(sem.support_X_), list(sem.support_Y_)
         self.hypers_ = [g.hyper_ for g in sem.gps_]
         self.basis_coef_ = list(sem.coef_)
-        self._gps = [None] * self.n_modes_
+        self.gp_kinds_ = [gp_kind(g) for g in sem.gps_]
+        self.inducing_ = [getattr(g, "inducing_", None) for g in sem.gps_]
+        self._gps = list(sem.gps_)
 
     # -- prediction ----------------------------------------------------------------------------
     @property
@@ -286,17 +296,21 @@ class MultimodalGP(BaseEstimator):
         check_is_fitted(self, "support_X_")
         return self.support_X_[0][:, : len(self.joint_names_)]
 
-    def gp(self, mode: int = 0) -> ExactGP:
-        """Mode ``mode``'s GP over the inputs [q, dq, ddq(, tanh(dq / v_s))(, tau_rbd)]."""
+    def gp(self, mode: int = 0):
+        """Mode ``mode``'s GP over the inputs [q, dq, ddq(, tanh(dq / v_s))(, tau_rbd)]: an
+        :class:`mmgp.gp.exact.ExactGP` or :class:`mmgp.gp.sparse.SparseGP` (``gp_kinds_``)."""
         check_is_fitted(self, "support_X_")
         if not isinstance(mode, (int, np.integer)) or not 0 <= mode < self.n_modes_:
             raise InputError(f"mode must be in 0..{self.n_modes_ - 1}, got {mode!r}")
         if not hasattr(self, "_gps"):
             self._gps = [None] * self.n_modes_
         if self._gps[mode] is None:
-            gp = ExactGP(device=self.device, ard=self.ard)
+            kind = self.gp_kinds_[mode]
+            gp = make_gp(len(self.support_Y_[mode]), method=kind, device=self.device, ard=self.ard, seed=self.seed,
+                         n_inducing=self.n_inducing, n_subset=self.n_inducing)
+            extra = {"inducing": self.inducing_[mode]} if kind == "sgpr" else {}
             self._gps[mode] = gp.fit(self.support_X_[mode], self.support_Y_[mode], hyper=self.hypers_[mode],
-                                     optimise=False)
+                                     optimise=False, **extra)
         return self._gps[mode]
 
     def predict(self, q, dq, ddq, mode: int = 0, return_std: bool = True):
@@ -317,9 +331,10 @@ class MultimodalGP(BaseEstimator):
         z = np.zeros_like(self._states(q, "q"))
         if self.friction_scale_ is None:
             return self._predict(q, z, z, 0)[0]
-        up = self._predict(q, z, z, 0, friction_sign=1.0)[0]
-        down = self._predict(q, z, z, 0, friction_sign=-1.0)[0]
-        return 0.5 * (up + down)
+        # both branches in one prediction: a large exact GP factorises once per call
+        both = self._predict(np.vstack([q, q]), np.vstack([z, z]), np.vstack([z, z]), 0,
+                             friction_sign=np.repeat([1.0, -1.0], len(z))[:, None])[0]
+        return 0.5 * (both[:len(z)] + both[len(z):])
 
     def _states(self, a, name: str) -> np.ndarray:
         check_is_fitted(self, "support_X_")
@@ -351,8 +366,8 @@ class MultimodalGP(BaseEstimator):
     def to_compensator(self, max_support: int = 1000, seed: int = 0):
         """The passive position-only feedforward tau_ff(q) = grad V(q) of the nominal mode, fitted
         to :meth:`nominal_torque` on up to ``max_support`` support positions (random subset,
-        ``seed``). See :func:`mmgp.compensator.field.compensator_from_model`."""
-        from .compensator.field import compensator_from_model
+        ``seed``). See :func:`mmgp.compensator.fit.compensator_from_model`."""
+        from .compensator.fit import compensator_from_model
 
         check_is_fitted(self, "support_X_")
         return compensator_from_model(self, max_support=max_support, seed=seed)
@@ -360,8 +375,9 @@ class MultimodalGP(BaseEstimator):
     # -- persistence ---------------------------------------------------------------------------
     def save(self, out_dir: str | os.PathLike) -> None:
         """Write ``model.npz`` (per mode ``X_k``, ``Y_k`` support, ``lengthscale_k``,
-        ``signal_var_k``, ``noise_var_k``, optional ``basis_coef_k``, ``friction_scale``) and
-        ``model.json`` (format, version, settings, robot, joints) into ``out_dir`` (created)."""
+        ``signal_var_k``, ``noise_var_k``, optional ``basis_coef_k`` and ``inducing_k`` (SGPR
+        inducing inputs), ``friction_scale``) and ``model.json`` (format, version, settings,
+        robot, joints, ``gp_kinds``) into ``out_dir`` (created)."""
         import io
 
         from .data.outputs import atomic_write_bytes
@@ -375,13 +391,15 @@ class MultimodalGP(BaseEstimator):
             arrays[f"noise_var_{k}"] = self.hypers_[k].noise_var
             if self.basis_coef_[k] is not None:
                 arrays[f"basis_coef_{k}"] = self.basis_coef_[k]
+            if self.inducing_[k] is not None:
+                arrays[f"inducing_{k}"] = self.inducing_[k]
         if self.friction_scale_ is not None:
             arrays["friction_scale"] = self.friction_scale_
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
                 "n_modes": self.n_modes_, "joint_names": self.joint_names_, "settings": self._settings_record(),
-                "robot": self.robot_spec_, "mean_basis": self.basis_kind_}
+                "robot": self.robot_spec_, "mean_basis": self.basis_kind_, "gp_kinds": self.gp_kinds_}
         out_dir = Path(out_dir)
         atomic_write_bytes(out_dir / "model.npz", buf.getvalue())
         atomic_write_bytes(out_dir / "model.json", json.dumps(meta, indent=2).encode())
@@ -389,7 +407,7 @@ class MultimodalGP(BaseEstimator):
     @classmethod
     def load(cls, model_dir: str | os.PathLike) -> "MultimodalGP":
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
-        format versions 1 and 2. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
+        format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
         model_dir = Path(model_dir)
         meta = _read_meta(model_dir)
@@ -403,6 +421,9 @@ class MultimodalGP(BaseEstimator):
                              for k in range(K)]
             model.basis_coef_ = [z[f"basis_coef_{k}"] if f"basis_coef_{k}" in z.files else None for k in range(K)]
             model.friction_scale_ = z["friction_scale"] if "friction_scale" in z.files else None
+            model.inducing_ = [z[f"inducing_{k}"] if f"inducing_{k}" in z.files else None for k in range(K)]
+        # versions 1 and 2 conditioned every mode's exact GP on its (subset) support
+        model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
         model.basis_kind_ = meta.get("mean_basis")
         model.robot_spec_ = meta.get("robot") or None
         model.robot_ = _robot_from_spec(model.robot_spec_)
@@ -421,7 +442,7 @@ def _read_meta(model_dir: Path) -> dict:
     except ValueError as exc:
         raise InputError(f"model.json is not valid JSON ({exc})", file=path) from None
     version = meta.get("version") if isinstance(meta, dict) else None
-    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT or version not in (1, MODEL_VERSION):
+    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT or version not in (1, 2, MODEL_VERSION):
         raise InputError(f"unsupported model format {meta.get('format') if isinstance(meta, dict) else None} "
                          f"v{version} (this mmgp reads {MODEL_FORMAT} v1-v{MODEL_VERSION})", file=path)
     if version == 1:

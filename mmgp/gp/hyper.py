@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 from .kernels import rbf_kernel, rbf_log_param_grads
-from .linalg import DTYPE, _TorchThreads, robust_cholesky
+from ..threads import threads_for_rows
+from .linalg import DTYPE, robust_cholesky
 from .objectives import Objective, get_objective
 
 
@@ -36,12 +37,6 @@ class Hyper:
     def as_dict(self) -> dict:
         return {"lengthscale": self.lengthscale.tolist(), "signal_var": self.signal_var.tolist(),
                 "noise_var": self.noise_var.tolist()}
-
-
-# Below this many kernel rows one objective evaluation is a few ms of BLAS per output, and thread
-# hand-offs dominate: on the shared 2-core machine a 300-sample, 7-output evaluation took
-# 0.09 s with 1 thread and 0.2-0.9 s with 2 threads.
-SINGLE_THREAD_BELOW = 600
 
 
 @dataclass(frozen=True)
@@ -64,7 +59,7 @@ class Optimum:
 def maximise(value_and_grad: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]], theta0: np.ndarray, *,
              n: int, bounds: Sequence[tuple[float | None, float | None]] | None = None,
              priors: Sequence[LogNormalPrior] = (), max_iter: int = 60, rows: int = 0, device="cpu",
-             single_thread_rows: int = SINGLE_THREAD_BELOW, ftol: float = 1e-9, gtol: float = 1e-6,
+             ftol: float = 1e-9, gtol: float = 1e-6,
              history: int = 10) -> Optimum | None:
     """Maximise ``F(theta) + log prior(theta)`` over log-hyperparameters by L-BFGS-B.
 
@@ -76,8 +71,8 @@ def maximise(value_and_grad: Callable[[torch.Tensor], tuple[torch.Tensor, torch.
     Failures and non-finite values count as a loss of 1e10 with zero gradient, which the line
     search rejects and backtracks from. The best point evaluated is returned (a line search that
     ends on failed trials does not lose it), or None when no evaluation was finite. ``max_iter``
-    bounds the iterations, function evaluations are capped at 1.5x that. Torch runs on one thread
-    while the kernel matrices have at most ``single_thread_rows`` rows (``rows``) on a CPU.
+    bounds the iterations, function evaluations are capped at 1.5x that. Threads: the policy of
+    :func:`mmgp.threads.threads_for` for kernel matrices of ``rows`` rows on ``device``.
     """
     from scipy.optimize import minimize
 
@@ -107,7 +102,7 @@ def maximise(value_and_grad: Callable[[torch.Tensor], tuple[torch.Tensor, torch.
     if bounds is not None:
         theta0 = np.clip(theta0, [-math.inf if b[0] is None else b[0] for b in bounds],
                          [math.inf if b[1] is None else b[1] for b in bounds])
-    with _TorchThreads(1 if (rows <= single_thread_rows and dev.type == "cpu") else None):
+    with threads_for_rows(rows, dev):
         minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds,
                  options={"maxiter": max_iter, "maxfun": int(1.5 * max_iter) + 5, "ftol": ftol, "gtol": gtol,
                           "maxcor": history})

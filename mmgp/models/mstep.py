@@ -15,6 +15,7 @@ import numpy as np
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
 from ..gp.linalg import LOG_2PI
+from ..gp.sparse import make_gp
 from ..gp.objectives import leave_block_out
 from ..gp.windowed import windowed_predictive
 from .hmm import _transition_counts
@@ -49,7 +50,7 @@ class ModeFitter:
 
     X (T, d) inputs, Y (T, n) torques; ``settings`` the sweep settings (``max_support``,
     ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
-    ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`); ``t_axis`` (T,) one increasing time
+    ``gp_method``, ``n_inducing``, ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`); ``t_axis`` (T,) one increasing time
     axis over all logs (enables the leave-window-out likelihood); ``basis`` (T, n, p) optional
     regressors of a robust linear mean under the GP.
     """
@@ -63,6 +64,31 @@ class ModeFitter:
         kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed)
         kw.update(s.gp_kwargs)
         return ExactGP(**kw)
+
+    def final_gp(self, members: np.ndarray, Y: np.ndarray, hyper: Hyper):
+        """The GP a mode is returned with: conditioned on ``members`` of targets Y (T, n) at
+        fixed ``hyper``; exact or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``)."""
+        s = self.settings
+        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed, n_inducing=s.n_inducing,
+                  n_subset=s.n_inducing)
+        kw.update(s.gp_kwargs)
+        gp = make_gp(len(members), method=s.gp_method, **kw)
+        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=False)
+
+    def fit_hyper(self, members: np.ndarray, rng: np.random.Generator) -> Hyper:
+        """Cold-start hyperparameters of one GP on ``members`` (after their basis mean, if any),
+        by the M-step's objective: leave-block-out with a time axis, else ``objective``; on
+        ``fit_points`` random members."""
+        Y = self.Y
+        if self.basis is not None:
+            Y = Y - np.einsum("tjp,jp->tj", self.basis, self.basis_coefficients(members))
+        gp = self.new_gp()
+        if self.t_axis is not None and self.settings.exclusion_s > 0 and self.settings.block_s > 0:
+            return self._windowed_hyper(gp, Y, members, None, rng)
+        fit_idx = members
+        if len(fit_idx) > self.settings.fit_points:
+            fit_idx = np.sort(rng.choice(members, self.settings.fit_points, replace=False))
+        return gp.fit(self.X[fit_idx], Y[fit_idx]).hyper_
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``."""
