@@ -12,7 +12,7 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import _fail, _progress_printer, app
+from .common import DEVICE_HELP, _fail, _progress_printer, app, command_numerics
 
 
 def _modes(value: Optional[str]):
@@ -66,7 +66,7 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
                                                      help="Disturbance mode (default on)."),
           robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name."),
           urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot."),
-          device: Optional[str] = typer.Option(None, "--device", help="torch device: cpu, cuda, auto."),
+          device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
           seed: Optional[int] = typer.Option(None, "--seed"),
           force: bool = typer.Option(False, "--force", help="Replace a non-empty --out."),
           quiet: bool = typer.Option(False, "--quiet", help="No per-sweep progress.")):
@@ -80,7 +80,7 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
                                  robot=_robot_option(robot, urdf), device=device, seed=seed,
                                  progress=_progress_printer(quiet))
         model = MultimodalGP(**settings)
-        with atomic_output_dir(out, force=force) as tmp:
+        with command_numerics(device), atomic_output_dir(out, force=force) as tmp:
             model.fit(logs)
             _write_training_outputs(tmp, model)
     except InputError as exc:
@@ -93,6 +93,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
             log: Path = typer.Argument(..., help="Log to predict (q, and dq/ddq or estimated)."),
             out: Path = typer.Option(..., "--out", help="Output Parquet file."),
             mode: int = typer.Option(0, "--mode", help="Mode to predict with (0 = nominal)."),
+            device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP + " Default: the model's."),
             force: bool = typer.Option(False, "--force")):
     """Predicted torque and its standard deviation per joint for a log."""
     import pandas as pd
@@ -104,13 +105,16 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
 
     try:
         model = MultimodalGP.load(model_dir)
+        if device is not None:
+            model.set_params(device=device)
         if out.exists() and not force:
             raise InputError("output exists (use --force to replace it)", file=out)
         if not 0 <= mode < model.n_modes_:
             raise InputError(f"--mode must be in 0..{model.n_modes_ - 1}")
         lg = complete_derivatives(read_log(log, n_joints=len(model.joint_names_)),
                                   SavitzkyGolay(window_s=model.diff_window_s, cv=True))
-        mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)
+        with command_numerics(device):
+            mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)
         cols = {"t": lg.t}
         for j in range(len(model.joint_names_)):
             cols[f"tau_hat_{j}"] = mean[:, j]

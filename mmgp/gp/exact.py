@@ -183,8 +183,12 @@ class ExactGP(StandardisedRBFGP):
         ``include_noise`` adds the observation noise (predictive of a new measurement).
         """
         Xq = self._query(X)
-        if self.per_output_:
-            return self._predict_per_output(Xq, include_noise, return_std)
+        with threads_for_rows(self.Xs_.shape[0], self.dev_):
+            if self.per_output_:
+                return self._predict_per_output(Xq, include_noise, return_std)
+            return self._predict_batched(Xq, include_noise, return_std)
+
+    def _predict_batched(self, Xq: torch.Tensor, include_noise: bool, return_std: bool):
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         mean_s, var_s = [], []
         # chunks keep each (m, N, chunk) buffer near 32 MB: prediction memory stays O(N m)

@@ -187,6 +187,10 @@ class SparseGP(StandardisedRBFGP):
         Xq = self._query(X)
         if self.method == "subset":
             return self._subset_shape(self.exact_.predict(X, include_noise=include_noise, return_std=return_std))
+        with threads_for_rows(max(self.Z_.shape[0], self._Xs.shape[0]), self.dev_):
+            return self._predict_sgpr(Xq, include_noise, return_std)
+
+    def _predict_sgpr(self, Xq: torch.Tensor, include_noise: bool, return_std: bool):
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         Z = torch.as_tensor(self.Z_, dtype=DTYPE, device=self.dev_)
         means, vars_ = [], []
