@@ -38,7 +38,7 @@ from ..gp.objectives import leave_block_out
 from ..data.logs import RobotLog
 from ..data.outputs import atomic_write_bytes, jsonable
 from ..data.differentiation import SavitzkyGolay
-from ..data.folds import time_block_folds
+from ..data.folds import spread_subset, time_block_folds
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
@@ -55,16 +55,6 @@ def default_gap(t: np.ndarray) -> int:
     t = np.asarray(t, dtype=np.float64)
     dt = float(np.median(np.diff(t)))
     return int(SavitzkyGolay().window_samples(dt, len(t)))
-
-
-def _train_subset(idx: np.ndarray, max_train: int, rng: np.random.Generator) -> np.ndarray:
-    """Evenly spaced picks (with a random offset): random picks put near-copies side by side,
-    and their correlated derivative noise makes the LOO objective take noise for signal."""
-    if len(idx) <= max_train:
-        return idx
-    step = len(idx) / max_train
-    pos = np.floor(rng.uniform(0, step) + step * np.arange(max_train)).astype(int)
-    return idx[np.minimum(pos, len(idx) - 1)]
 
 
 def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: str, block_s: float) -> ExactGP:
@@ -167,7 +157,7 @@ def _fold_predictions(log: RobotLog, tau, tau_rbd, folds, *, gap, max_train, see
         if len(train) < 2:
             raise ValueError(f"fold {k}: only {len(train)} training samples left with gap={gap}; "
                              "use fewer folds or a smaller gap")
-        sub = _train_subset(train, max_train, rng)
+        sub = spread_subset(train, max_train, rng)
         fold_info.append({"test": [int(test[0]), int(test[-1]) + 1], "n_train_available": int(len(train)),
                           "n_train": int(len(sub))})
         t1 = time.perf_counter()

@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..data.folds import spread_subset
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
 from ..gp.linalg import LOG_2PI
@@ -76,19 +77,15 @@ class ModeFitter:
         return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=False)
 
     def fit_hyper(self, members: np.ndarray, rng: np.random.Generator) -> Hyper:
-        """Cold-start hyperparameters of one GP on ``members`` (after their basis mean, if any),
-        by the M-step's objective: leave-block-out with a time axis, else ``objective``; on
-        ``fit_points`` random members."""
+        """Cold-start hyperparameters of one GP on ``members`` (after their basis mean, if any)
+        by the ``objective`` of ``gp_kwargs`` on ``fit_points`` members evenly spaced in time
+        (:func:`mmgp.data.folds.spread_subset`). Used without labels to learn, where no push
+        can be memorised, so the sweeps' leave-block-out objective is not needed."""
         Y = self.Y
         if self.basis is not None:
             Y = Y - np.einsum("tjp,jp->tj", self.basis, self.basis_coefficients(members))
-        gp = self.new_gp()
-        if self.t_axis is not None and self.settings.exclusion_s > 0 and self.settings.block_s > 0:
-            return self._windowed_hyper(gp, Y, members, None, rng)
-        fit_idx = members
-        if len(fit_idx) > self.settings.fit_points:
-            fit_idx = np.sort(rng.choice(members, self.settings.fit_points, replace=False))
-        return gp.fit(self.X[fit_idx], Y[fit_idx]).hyper_
+        fit_idx = spread_subset(members, self.settings.fit_points, rng)
+        return self.new_gp().fit(self.X[fit_idx], Y[fit_idx]).hyper_
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``."""

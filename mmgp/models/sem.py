@@ -119,7 +119,8 @@ class MultimodalSEM:
 
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
-            init_states: np.ndarray | None = None, basis: np.ndarray | None = None) -> "MultimodalSEM":
+            init_states: np.ndarray | None = None, basis: np.ndarray | None = None,
+            sweeps: bool | None = None) -> "MultimodalSEM":
         """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
         (T, n, p): optional per-output linear regressors (e.g. the rigid-body inertial-parameter
@@ -136,16 +137,20 @@ class MultimodalSEM:
 
         One mode without the disturbance mode has no labels to learn: no sweeps are run
         (``n_sweeps_`` 0, ``trace_`` empty); one GP is fitted on every sample (:meth:`_fit_single`).
+        ``sweeps=True`` runs them anyway (their log marginal scores K = 1 against K > 1).
         """
-        if self.n_modes == 1 and not self.disturbance and init_states is None:
+        if sweeps is None:
+            sweeps = not (self.n_modes == 1 and not self.disturbance and init_states is None)
+        if not sweeps:
             return self._fit_single(X, Y, t=t, starts=starts, basis=basis)
         # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
         with limit_threads(1):
             return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis)
 
     def _fit_single(self, X, Y, *, t, starts, basis=None) -> "MultimodalSEM":
-        """One GP on every sample: hyperparameters as the M-step fits them (on ``fit_points``
-        samples), then the GP :func:`mmgp.gp.sparse.make_gp` picks, conditioned on all of them."""
+        """One GP on every sample: hyperparameters on ``fit_points`` of them
+        (:meth:`ModeFitter.fit_hyper`), then the GP :func:`mmgp.gp.sparse.make_gp` picks,
+        conditioned on all of them."""
         t0 = time.perf_counter()
         fitter, _ = self._prepare(X, Y, t, starts, basis)
         T, n = fitter.Y.shape
@@ -354,7 +359,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     d = np.asarray(X).shape[1]
     scores, models = {}, {}
     for K in candidates:
-        m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, t=t, starts=starts, basis=basis)
+        m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, t=t, starts=starts, basis=basis, sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         models[K] = m
     best = max(scores, key=scores.get)
