@@ -41,9 +41,9 @@ class MultimodalGP(BaseEstimator):
     with one RBF GP per mode over ``[q, dq, ddq, tanh(dq / v_s)]``; every training sample
     gets a mode and a disturbance label. Units: rad (m), rad/s, rad/s^2, N*m (N), s.
 
-    One mode without the disturbance mode has no labels to learn: the EM is skipped, the
-    hyperparameters are fitted once by ``objective`` on ``fit_points`` samples evenly spaced in
-    time, and one GP is conditioned on every sample. How the returned GPs scale: ``gp_method``.
+    One mode without the disturbance mode has no labels to learn: the EM is skipped and one GP
+    is fitted on every sample, its hyperparameters by ``objective`` on ``fit_points`` random
+    samples (:class:`mmgp.gp.exact.ExactGP`'s procedure). How the GPs scale: ``gp_method``.
 
     Parameters (every training setting; the ``train:`` section of a settings file holds the same
     keys, see :func:`mmgp.config.load_settings`)

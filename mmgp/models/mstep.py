@@ -12,7 +12,6 @@ from typing import Sequence
 
 import numpy as np
 
-from ..data.folds import spread_subset
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
 from ..gp.linalg import LOG_2PI
@@ -66,26 +65,16 @@ class ModeFitter:
         kw.update(s.gp_kwargs)
         return ExactGP(**kw)
 
-    def final_gp(self, members: np.ndarray, Y: np.ndarray, hyper: Hyper):
-        """The GP a mode is returned with: conditioned on ``members`` of targets Y (T, n) at
-        fixed ``hyper``; exact or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``)."""
+    def final_gp(self, members: np.ndarray, Y: np.ndarray, hyper: Hyper | None):
+        """The GP a mode is returned with: conditioned on ``members`` of targets Y (T, n); exact
+        or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``). ``hyper`` None: the GP fits
+        its own (its standard procedure, on ``fit_points`` random members)."""
         s = self.settings
         kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed, n_inducing=s.n_inducing,
                   n_subset=s.n_inducing)
         kw.update(s.gp_kwargs)
         gp = make_gp(len(members), method=s.gp_method, **kw)
-        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=False)
-
-    def fit_hyper(self, members: np.ndarray, rng: np.random.Generator) -> Hyper:
-        """Cold-start hyperparameters of one GP on ``members`` (after their basis mean, if any)
-        by the ``objective`` of ``gp_kwargs`` on ``fit_points`` members evenly spaced in time
-        (:func:`mmgp.data.folds.spread_subset`). Used without labels to learn, where no push
-        can be memorised, so the sweeps' leave-block-out objective is not needed."""
-        Y = self.Y
-        if self.basis is not None:
-            Y = Y - np.einsum("tjp,jp->tj", self.basis, self.basis_coefficients(members))
-        fit_idx = spread_subset(members, self.settings.fit_points, rng)
-        return self.new_gp().fit(self.X[fit_idx], Y[fit_idx]).hyper_
+        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None)
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``."""
