@@ -13,9 +13,10 @@ What the measurements on the shared 2-core development machine (load 6-8) taught
 Policy (:func:`threads_for`): on a GPU the CPU does bookkeeping only: one thread. On a CPU, one
 thread below :data:`PARALLEL_FROM_ROWS` kernel rows; from there, as many threads as there are
 idle cores (cores this process may use minus the 1-minute load average, plus the one this
-process occupies), never more than the cap the user set (``OMP_NUM_THREADS``). Commands and library entry points wrap their numerics in
-:func:`limit_threads` / :func:`threads_for_rows`, which set torch's intra-op threads and, through
-threadpoolctl, every BLAS/OpenMP pool numpy, scipy and scikit-learn use, and restore them after.
+process occupies), never more than the cap the user set (``OMP_NUM_THREADS``). Commands and
+library entry points wrap their numerics in :func:`limit_threads` / :func:`threads_for_rows`,
+which set torch's intra-op threads and, through threadpoolctl, every BLAS/OpenMP pool numpy,
+scipy and scikit-learn use, and restore them after.
 
 No torch import at module level (``import mmgp`` stays light).
 """

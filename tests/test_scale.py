@@ -34,7 +34,9 @@ def numpy_gp(gp, X, Y, Xq):
     A, B = xs.transform(X), xs.transform(Xq)
     out = {"mean": [], "std": [], "loo_mean": [], "loo_std": []}
     for j in range(Y.shape[1]):
-        k = lambda P, Q: h.signal_var[j] * np.exp(-0.5 * (((P[:, None] - Q[None]) / h.lengthscale[j]) ** 2).sum(-1))  # noqa: E731
+        def k(P, Q, j=j):
+            return h.signal_var[j] * np.exp(-0.5 * (((P[:, None] - Q[None]) / h.lengthscale[j]) ** 2).sum(-1))
+
         K = k(A, A) + h.noise_var[j] * np.eye(len(A))
         y = (Y[:, j] - ys.mean_[j]) / ys.scale_[j]
         Ks = k(A, B)
@@ -185,6 +187,21 @@ def test_make_gp_rule_exact_while_memory_allows_then_sgpr(monkeypatch):
     assert type(make_gp(1001, n_inducing=10)) is SparseGP
     with pytest.raises(ValueError, match="auto, exact, sgpr, subset"):
         choose_gp_method(10, "dense")
+
+
+def test_independent_outputs_are_each_optimised_alone():
+    from mmgp.gp.hyper import default_hyper, optimise_hyper
+
+    X, Y = toy(N=60)
+    Xs = torch.as_tensor((X - X.mean(0)) / X.std(0))
+    Ys = torch.as_tensor((Y - Y.mean(0)) / Y.std(0))
+    init = default_hyper(2, 2)
+    both, value = optimise_hyper(Xs, Ys, init, max_iter=15, independent=True)
+    alone = [optimise_hyper(Xs, Ys[:, j:j + 1], init.output(j), max_iter=15) for j in range(2)]
+    for j, (h, _) in enumerate(alone):
+        np.testing.assert_allclose(both.lengthscale[j], h.lengthscale[0], rtol=1e-12)
+        assert both.noise_var[j] == pytest.approx(h.noise_var[0], rel=1e-12)
+    assert value == pytest.approx(sum(v for _, v in alone), rel=1e-12)
 
 
 # ------------------------------------------------------------------------------- the estimator

@@ -57,7 +57,7 @@ class StandardisedRBFGP(BaseEstimator):
 
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
-                 coarse_fit_points: int = 300):
+                 coarse_fit_points: int = 300, independent_outputs: bool = False):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -66,6 +66,7 @@ class StandardisedRBFGP(BaseEstimator):
         self.device = device
         self.seed = seed
         self.coarse_fit_points = coarse_fit_points
+        self.independent_outputs = independent_outputs
 
     def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
@@ -127,6 +128,8 @@ class ExactGP(StandardisedRBFGP):
         cost (Barrett WAM, 21 inputs: same held-out error as 60 full iterations, ~3x faster).
         0 disables it.
     noise_floor : smallest noise variance, as a fraction of each output's variance.
+    independent_outputs : one optimiser run per output (see
+        :func:`mmgp.gp.hyper.optimise_hyper`); default False, one run over all outputs.
     device : torch device ("cpu", "cuda", "auto"); None (default): the block's default
         (:func:`mmgp.gp.linalg.default_device`), "cpu" outside one.
 

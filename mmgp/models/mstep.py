@@ -50,9 +50,9 @@ class ModeFitter:
 
     X (T, d) inputs, Y (T, n) torques; ``settings`` the sweep settings (``max_support``,
     ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
-    ``gp_method``, ``n_inducing``, ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`); ``t_axis`` (T,) one increasing time
-    axis over all logs (enables the leave-window-out likelihood); ``basis`` (T, n, p) optional
-    regressors of a robust linear mean under the GP.
+    ``gp_method``, ``n_inducing``, ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`);
+    ``t_axis`` (T,) one increasing time axis over all logs (enables the leave-window-out
+    likelihood); ``basis`` (T, n, p) optional regressors of a robust linear mean under the GP.
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, settings, *, t_axis: np.ndarray | None = None,
@@ -68,10 +68,11 @@ class ModeFitter:
     def final_gp(self, members: np.ndarray, Y: np.ndarray, hyper: Hyper | None):
         """The GP a mode is returned with: conditioned on ``members`` of targets Y (T, n); exact
         or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``). ``hyper`` None: the GP fits
-        its own (its standard procedure, on ``fit_points`` random members)."""
+        its own (its standard procedure on ``fit_points`` random members, one optimiser run
+        per output)."""
         s = self.settings
         kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed, n_inducing=s.n_inducing,
-                  n_subset=s.n_inducing)
+                  n_subset=s.n_inducing, independent_outputs=True)
         kw.update(s.gp_kwargs)
         gp = make_gp(len(members), method=s.gp_method, **kw)
         return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None)
