@@ -132,6 +132,34 @@ def test_device_cuda_without_gpu_is_one_clear_error(tmp_path, argv):
     assert not out.exists() and not list(tmp_path.glob(".out.partial*"))
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without a GPU")
+def test_predict_with_a_cuda_model_on_a_cpu_machine_names_the_way_out(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from mmgp import MultimodalGP
+    from mmgp.cli import app
+    from mmgp.data.logs import read_log
+    from mmgp.resources import demo_files
+
+    log, _ = demo_files()
+    lg = read_log(log)
+    MultimodalGP(n_modes=1, disturbance=False, fit_iter=5).fit(log).save(tmp_path / "m")
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    meta["settings"]["device"] = "cuda"                 # as written by 'mmgp train --device cuda'
+    (tmp_path / "m" / "model.json").write_text(json.dumps(meta))
+    runner = CliRunner()
+    res = runner.invoke(app, ["predict", str(tmp_path / "m"), str(log), "--out", str(tmp_path / "p.parquet")])
+    assert res.exit_code == 2 and "--device cpu" in res.output
+    res = runner.invoke(app, ["predict", str(tmp_path / "m"), str(log), "--out", str(tmp_path / "p.parquet"),
+                              "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    import pandas as pd
+
+    assert len(pd.read_parquet(tmp_path / "p.parquet")) == lg.n_samples
+
+
 # ------------------------------------------------------------------------------- GPs
 def test_per_output_exact_gp_matches_the_closed_form(monkeypatch):
     monkeypatch.setattr(exact_mod, "BATCHED_BYTES", 0)        # force one output at a time

@@ -88,6 +88,17 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
     typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots.")
 
 
+def _check_model_device(model, model_dir: Path) -> None:
+    """A model trained on a device this machine lacks is refused with the way out."""
+    from ..gp.linalg import resolve_device
+
+    try:
+        resolve_device(model.device)
+    except ValueError:
+        raise InputError(f"the model was trained with device {model.device!r}, which this machine lacks: "
+                         "give --device cpu", file=model_dir) from None
+
+
 @app.command()
 def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp train'."),
             log: Path = typer.Argument(..., help="Log to predict (q, and dq/ddq or estimated)."),
@@ -107,6 +118,8 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
         model = MultimodalGP.load(model_dir)
         if device is not None:
             model.set_params(device=device)
+        else:
+            _check_model_device(model, model_dir)
         if out.exists() and not force:
             raise InputError("output exists (use --force to replace it)", file=out)
         if not 0 <= mode < model.n_modes_:
