@@ -9,7 +9,8 @@ Public API (imported on first use, so ``import mmgp`` loads neither torch nor pi
 - :func:`read_log`, :class:`RobotLog`: a checked log (docs/contract.md).
 - :class:`RobotModel`, :func:`load_robot`: Pinocchio rigid-body models.
 - :class:`InputError`: the one error for bad input.
-- :func:`demo_files`: the shipped demo recording and its ground-truth labels (Parquet paths).
+- :func:`demo_files`: the shipped demo recording and its ground-truth labels (Parquet paths);
+  :func:`demo_urdf`: the nominal rigid body of that recording (URDF path).
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ _LAZY = {
     "load_robot": ".physics.robot",
     "InputError": ".errors",
     "demo_files": ".resources",
+    "demo_urdf": ".resources",
 }
 
 __all__ = ["__version__", *_LAZY]

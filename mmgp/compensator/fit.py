@@ -1,8 +1,8 @@
 """Building the passive feedforward compensator from a learned model.
 
 :func:`compensator_from_model` needs only the small :class:`FeedforwardSource` protocol, so any
-estimator that can give its nominal torque at rest works (the saved ``TrainedModel`` of
-:mod:`mmgp.models.trained`, the public ``MultimodalGP``, or a closed-form stand-in in tests).
+estimator that can give its nominal torque at rest works (the public
+:class:`mmgp.MultimodalGP`, or a closed-form stand-in in tests).
 """
 from __future__ import annotations
 

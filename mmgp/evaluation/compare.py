@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import normalised_mse
+from .metrics import COMPARE_LABELS, normalised_mse
 from ..threads import limit_threads
 from ..gp.exact import ExactGP
 from ..gp.linalg import resolve_device
@@ -42,8 +42,7 @@ from ..data.folds import spread_subset, time_block_folds
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
-METHODS = ("rigid_body", "gp", "rigid_body_gp")
-LABELS = {"rigid_body": "rigid body only", "gp": "GP only", "rigid_body_gp": "rigid body + GP"}
+METHODS = tuple(COMPARE_LABELS)
 
 
 def default_gap(t: np.ndarray) -> int:
@@ -205,7 +204,7 @@ def _result(log: RobotLog, robot, tau, pred, folds, *, n_folds, gap, max_train, 
 def format_compare(result: dict) -> str:
     """Plain-text table: one row per joint, one column per method (held-out normalised MSE)."""
     methods = result["methods"]
-    head = f"{'joint':<24}" + "".join(f"{LABELS[m]:>18}" for m in methods)
+    head = f"{'joint':<24}" + "".join(f"{COMPARE_LABELS[m]:>18}" for m in methods)
     if "gp_improves_rigid_body" in result:
         head += f"{'GP helps':>10}"
     lines = [f"held-out normalised MSE ({result['n_folds']} time-block folds, gap {result['gap']} samples = "
@@ -248,7 +247,7 @@ def write_compare(result: dict, out_dir) -> list[Path]:
     floor = 1e-6
     for i, m in enumerate(methods):
         v = np.maximum(np.asarray(result["nmse"][m], dtype=np.float64), floor)
-        ax.bar(x + (i - (len(methods) - 1) / 2) * width, v, width, label=LABELS[m], color=colours[m])
+        ax.bar(x + (i - (len(methods) - 1) / 2) * width, v, width, label=COMPARE_LABELS[m], color=colours[m])
     ax.axhline(1.0, color="k", ls="--", lw=0.8, label="predicting the mean")
     ax.set_yscale("log")
     ax.set_xticks(x)

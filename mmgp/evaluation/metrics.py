@@ -10,6 +10,9 @@ from sklearn.metrics import adjusted_rand_score, precision_recall_fscore_support
 SOURCE_FIGURES = {"unperturbed_correct": 192 / 235, "perturbed_missed": 14 / 92,
                   "unperturbed_n": 235, "perturbed_n": 92}
 
+# The predictors `mmgp compare` scores, in table order, with the names tables and plots show.
+COMPARE_LABELS = {"rigid_body": "rigid body only", "gp": "GP only", "rigid_body_gp": "rigid body + GP"}
+
 
 def classification_figures(pred: pd.DataFrame, truth: pd.DataFrame) -> dict:
     """Figures of CONTRACT section 2 (``mmgp evaluate``).

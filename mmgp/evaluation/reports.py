@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .html import HtmlReport
-from .metrics import SOURCE_FIGURES
+from .metrics import COMPARE_LABELS, SOURCE_FIGURES
 
 __all__ = ["write_training_report", "write_compare_report"]
 
@@ -89,7 +89,6 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
 def write_compare_report(out_dir: str | Path, result: dict) -> Path:
     """``out_dir/report.html`` of ``mmgp compare``: the held-out normalised MSE per joint and
     method (``result`` = compare.json), the plot ``compare.png`` in ``out_dir`` and the JSON."""
-    from .compare import LABELS
 
     out = Path(out_dir)
     methods = result["methods"]
@@ -106,7 +105,7 @@ def write_compare_report(out_dir: str | Path, result: dict) -> Path:
     rows = [[name] + [result["nmse"][m][j] for m in methods] + ([improves[j]] if improves else [])
             for j, name in enumerate(result["joint_names"])]
     rows.append(["mean"] + [float(np.mean(result["nmse"][m])) for m in methods] + ([None] if improves else []))
-    page.table(["joint"] + [LABELS[m] for m in methods] + (["GP helps"] if improves else []), rows, kind="nmse")
+    page.table(["joint"] + [COMPARE_LABELS[m] for m in methods] + (["GP helps"] if improves else []), rows, kind="nmse")
     if (out / "compare.png").is_file():
         page.figure(out / "compare.png", "Held-out normalised MSE per joint (log scale)")
     page.section("Summary").json(result, "compare")

@@ -21,6 +21,12 @@ def demo_files() -> tuple[Path, Path]:
     return _HERE / "replica" / "replica_log.parquet", _HERE / "replica" / "replica_labels.parquet"
 
 
+def demo_urdf() -> Path:
+    """URDF of the demo recording's nominal rigid body (the lever and its load, nothing else): what
+    :class:`mmgp.Diagnoser` holds the shipped replica against (``mmgp.load_robot(urdf=demo_urdf())``)."""
+    return _HERE / "replica" / "replica_lever.urdf"
+
+
 def config_files() -> dict[str, Path]:
     """The shipped settings files by name (file stem), e.g. ``{"default": .../default.yaml}``."""
     return {p.stem: p for p in sorted((_HERE / "configs").glob("*.yaml"))}

@@ -19,6 +19,7 @@ joint's nominal torque on the same trajectory, measured in a MuJoCo run without 
 from __future__ import annotations
 
 import copy
+import atexit
 import os
 import tempfile
 from pathlib import Path
@@ -60,10 +61,12 @@ ACTUATOR_URDF = f"""<?xml version="1.0"?>
 
 
 def actuator_urdf_path() -> str:
-    """Write the 1-DOF actuator URDF to a temp file (once per process) and return its path."""
+    """Write the 1-DOF actuator URDF to a temp file (once per process, removed when the process
+    exits) and return its path."""
     path = Path(tempfile.gettempdir()) / f"mmgp_actuator_{os.getpid()}.urdf"
     if not path.exists() or path.read_text() != ACTUATOR_URDF:
         path.write_text(ACTUATOR_URDF)
+        atexit.register(path.unlink, missing_ok=True)
     return str(path)
 
 
