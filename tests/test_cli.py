@@ -223,3 +223,36 @@ def test_demo_end_to_end(tmp_path, trained):
     (other / "keep.txt").write_text("precious")
     res = runner.invoke(app, ["demo", "--out", str(other)])
     assert res.exit_code == 2 and (other / "keep.txt").read_text() == "precious"
+
+
+def _digest(path: Path) -> str:
+    import hashlib
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_every_command_refuses_to_write_over_or_around_its_inputs(trained, tmp_path):
+    """Each command hands its inputs to the writer: an output that is an input, or a folder that
+    holds one, is refused with exit 2 before any work, and the inputs stay byte for byte."""
+    import shutil
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    log = logs / "replica.parquet"
+    shutil.copy(LOG, log)
+    urdf = logs / "lever.urdf"
+    shutil.copy(ROOT / "mmgp/resources/replica/replica_lever.urdf", urdf)
+    before = {p: _digest(p) for p in [log, urdf, trained / "model.json", trained / "model.npz"]}
+    attempts = {
+        "train into the log's folder": ["train", str(log), "--out", str(logs), "--force", "--quiet"],
+        "diagnose into the log's folder": ["diagnose", str(log), "--urdf", str(urdf), "--out", str(logs), "--force"],
+        "compare into the URDF's folder": ["compare", str(log), "--urdf", str(urdf), "--out", str(logs), "--force"],
+        "predict over the log": ["predict", str(trained), str(log), "--out", str(log), "--force"],
+        "predict over the model": ["predict", str(trained), str(log), "--out", str(trained / "model.npz"), "--force"],
+        "export over the model": ["export", str(trained), "--out", str(trained / "model.json"), "--force"],
+    }
+    for what, argv in attempts.items():
+        res = runner.invoke(app, argv)
+        assert res.exit_code == 2, (what, res.output)
+        assert "input" in res.output.lower(), (what, res.output)
+    assert {p: _digest(p) for p in before} == before
+    assert sorted(p.name for p in logs.iterdir()) == ["lever.urdf", "replica.parquet"]

@@ -75,6 +75,17 @@ def command_numerics(device: Optional[str] = None) -> Iterator[None]:
             signal.signal(signal.SIGTERM, previous)
 
 
+def _given(*paths) -> list[Path]:
+    """The input paths a command was given (options left out are None), for the writers'
+    ``inputs=``: an output may never be, contain or lie inside one of them."""
+    return [Path(p) for p in paths if p is not None]
+
+
+def _model_files(model_dir: Path) -> list[Path]:
+    """The files of a saved model (the folder itself may also hold outputs, e.g. evaluation.json)."""
+    return [Path(model_dir) / "model.json", Path(model_dir) / "model.npz"]
+
+
 def _robot_for(log_path, robot: Optional[str], urdf: Optional[Path], n_joints: Optional[int] = None):
     from ..physics.robot import load_robot
 

@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 
 from ..errors import InputError
-from .common import _fail, app, force_option, seed_option
+from .common import _fail, _model_files, app, force_option, seed_option
 
 
 @app.command()
@@ -20,11 +20,11 @@ def export(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp t
     """Export the position-only passive feedforward tau_ff(q) = grad V(q) with its storage function."""
     from ..compensator import check_passivity
     from ..config import load_settings
+    from ..data.outputs import check_output
     from ..estimator import MultimodalGP
 
     try:
-        if out.exists() and not force:
-            raise InputError("output exists (use --force to replace it)", file=out)
+        check_output(out, force=force, inputs=_model_files(model_dir))
         settings = load_settings(config, "export", MultimodalGP.to_compensator, max_support=max_support)
         comp = MultimodalGP.load(model_dir).to_compensator(**settings)
         comp.save(out)

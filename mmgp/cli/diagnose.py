@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 
 from ..errors import InputError
-from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, _robot_for, app, command_numerics,
+from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, _given, _robot_for, app, command_numerics,
                      force_option, out_dir_option, parameter_default, quiet_option, robot_option, urdf_option)
 
 
@@ -33,7 +33,8 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
         if robot_model is None:
             raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                              "(or name one in the log's metadata)", file=log)
-        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+        with (command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(log, urdf, config)) as tmp,
+              ProgressDisplay(quiet) as shown):
             shown.stage("diagnose", None)  # no stages reported yet: elapsed time only
             diagnoser.fit(log, robot_model).report(tmp)
     except InputError as exc:
@@ -62,7 +63,8 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
         robot_model = _robot_for(log, robot, urdf)
         lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints if robot_model else None,
                                            joint_names=robot_model.joint_names if robot_model else None))
-        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+        with (command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(log, urdf)) as tmp,
+              ProgressDisplay(quiet) as shown):
             shown.stage("compare: folds", parameter_default(run_compare, "n_folds"))
             res = run_compare(lg, robot_model, max_train=max_train,
                               progress=lambda msg: shown.step(msg, advance=1))

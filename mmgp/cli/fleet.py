@@ -7,7 +7,7 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import ProgressDisplay, _fail, app, force_option, out_dir_option, quiet_option
+from .common import ProgressDisplay, _fail, _given, app, force_option, out_dir_option, quiet_option
 
 
 def _progress(shown: ProgressDisplay):
@@ -60,7 +60,7 @@ def fleet(logs: List[Path] = typer.Argument(..., help="Log files, or folders of 
     runner = Fleet(robot=robot, urdf=urdf, train=train, engine="serial" if serial else "ray", address=address,
                    workers=workers, baseline=baseline)
     try:
-        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+        with atomic_output_dir(out, force=force, inputs=_given(*logs)) as tmp, ProgressDisplay(quiet) as shown:
             runner.fit(logs, progress=_progress(shown))
             runner.write(tmp)
     except InputError as exc:

@@ -12,8 +12,8 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, app, command_numerics, force_option,
-                     out_dir_option, quiet_option, seed_option, sweep_limit)
+from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, command_numerics,
+                     force_option, out_dir_option, quiet_option, seed_option, sweep_limit)
 
 
 def _modes(value: Optional[str]):
@@ -83,7 +83,7 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
     try:
         settings = load_settings(config, "train", MultimodalGP, n_modes=_modes(modes), disturbance=disturbance,
                                  robot=_robot_option(robot, urdf), device=device, seed=seed)
-        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+        with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(*logs, config)) as tmp, ProgressDisplay(quiet) as shown:
             model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
             model.fit(logs)
             _write_training_outputs(tmp, model)
@@ -115,7 +115,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
 
     from ..data.differentiation import SavitzkyGolay, complete_derivatives
     from ..data.logs import read_log
-    from ..data.outputs import write_table
+    from ..data.outputs import check_output, write_table
     from ..estimator import MultimodalGP
 
     try:
@@ -124,8 +124,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
             model.set_params(device=device)
         else:
             _check_model_device(model, model_dir)
-        if out.exists() and not force:
-            raise InputError("output exists (use --force to replace it)", file=out)
+        check_output(out, force=force, inputs=_model_files(model_dir) + [log])
         if not 0 <= mode < model.n_modes_:
             raise InputError(f"--mode must be in 0..{model.n_modes_ - 1}")
         lg = complete_derivatives(read_log(log, n_joints=len(model.joint_names_)),
@@ -136,7 +135,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
         for j in range(len(model.joint_names_)):
             cols[f"tau_hat_{j}"] = mean[:, j]
             cols[f"tau_std_{j}"] = std[:, j]
-        write_table(out, pd.DataFrame(cols))
+        write_table(out, pd.DataFrame(cols), force=force, inputs=_model_files(model_dir) + [log])
     except InputError as exc:
         _fail(exc)
     typer.echo(f"wrote {out} ({len(lg.t)} samples, mode {mode})")
@@ -161,7 +160,7 @@ def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp
             raise InputError("evaluation of a model trained on several logs needs one truth file per log; "
                              "train on the log alone to evaluate it", file=lab_path)
         fig = _figures(pred, truth)
-        atomic_write_bytes(model_dir / "evaluation.json", json.dumps(fig, indent=2).encode())
+        atomic_write_bytes(model_dir / "evaluation.json", json.dumps(fig, indent=2).encode(), inputs=[truth])
         if (model_dir / "report.json").is_file():  # the page now shows the figures too
             write_training_report(model_dir, json.loads((model_dir / "report.json").read_text()), fig)
     except InputError as exc:
