@@ -15,41 +15,56 @@ _EXP_M_HALF = math.exp(-0.5)
 
 
 def potential_bounds(comp) -> tuple[float, float, dict]:
-    """Rigorous (lower, upper) bounds of V on all of R^n, and how they were obtained.
+    """Rigorous (lower, upper) bounds of the deviation potential V_dev on all of R^n, and how they
+    were obtained; ``info["torque_bound"]`` (n,) bounds ``|dV_dev/dq_i|`` everywhere.
 
     Triangle bound (always valid, usually very loose because GP weights alternate in sign):
-    curl-free ``B_tri = s2 e^{-1/2} sum_a |gamma_a|``; erf-1dof ``B_tri = sum_a |A_a|``.
+    curl-free ``B_tri = s2 max_r(r A(r)) sum_a |gamma_a|``; erf-1dof ``B_tri = sum_a |A_a|``.
     Tighter bounds: :func:`_curl_free_rkhs_bound` and :func:`_erf_grid_bound`. Each bound is
-    widened by a rounding allowance (1e-12 of the sum of absolute terms).
+    widened by a rounding allowance (1e-12 of the sum of absolute terms). The prior's bounds are
+    added by the caller.
     """
-    if comp.kind == "curl-free-rbf":
-        return _curl_free_rkhs_bound(comp)
-    return _erf_grid_bound(comp)
+    if comp.kind == "erf-1dof":
+        return _erf_grid_bound(comp)
+    return _curl_free_rkhs_bound(comp)
+
+
+def _max_r_a(profile) -> float:
+    """max_r r A(r): e^{-1/2} for the RBF; for a Wendland profile a grid of 10^5 points on [0, 1]
+    widened by 1e-3 (r A(r) is a polynomial of bounded slope there)."""
+    if profile is None:
+        return _EXP_M_HALF
+    r = np.linspace(0.0, 1.0, 100_001)
+    return float(np.max(r * profile.A(r))) * 1.001
 
 
 def _curl_free_rkhs_bound(comp) -> tuple[float, float, dict]:
     """V = sum_ai alpha_ai d k(., z_a)/dz_i lies in the RKHS of k with ``|V|_H^2 = alpha^T K_dd alpha``,
-    and ``|V(q)| = |<V, k(., q)>| <= |V|_H sqrt(s2)``.
+    so ``|V(q)| = |<V, k(., q)>| <= |V|_H sqrt(s2)`` and ``|dV/dq_i| <= |V|_H sqrt(s2 A(0)) / l_i``.
 
     The quadratic form needs only (N, N) matrices: with ``P = zs gamma^T``, ``d_a = zs_a.gamma_a``,
-    ``alpha^T K alpha = sum_ab k_ab (gamma_a.gamma_b - (d_a - P_ba)(P_ab - d_b))``.
+    ``alpha^T K alpha = sum_ab s2 (A_ab gamma_a.gamma_b - B_ab (d_a - P_ba)(P_ab - d_b))``.
     """
     N = comp.support.shape[0]
     G, zs, s2 = comp._gamma, comp._zs, comp.signal_var
-    tri = float(s2 * _EXP_M_HALF * np.sum(np.sqrt(np.sum(G * G, axis=1))))
+    tri = float(s2 * _max_r_a(comp.profile) * np.sum(np.sqrt(np.sum(G * G, axis=1))))
     if N * N * comp.n_joints <= 2e7:
         D = zs[:, None, :] - zs[None, :, :]
-        k = s2 * np.exp(-0.5 * np.sum(D * D, axis=2))
+        r2 = np.sum(D * D, axis=2)
     else:
         sq = np.sum(zs ** 2, axis=1)
-        k = s2 * np.exp(-0.5 * np.maximum(sq[:, None] + sq[None] - 2 * zs @ zs.T, 0))
+        r2 = np.maximum(sq[:, None] + sq[None] - 2 * zs @ zs.T, 0)
+    a, b = comp._radial(r2)
     P = zs @ G.T
     d = np.sum(zs * G, axis=1)
-    terms = k * (G @ G.T - (d[:, None] - P.T) * (P - d[None, :]))
-    qf = float(np.sum(terms)) + 1e-12 * float(np.sum(np.abs(terms)))
-    rkhs = math.sqrt(s2 * max(qf, 0.0))
+    terms = a * (G @ G.T) - b * ((d[:, None] - P.T) * (P - d[None, :]))
+    qf = max(float(np.sum(terms)) + 1e-12 * float(np.sum(np.abs(terms))), 0.0)
+    rkhs = math.sqrt(s2 * qf)
     B = min(tri, rkhs) * (1 + 1e-12) + 1e-12 * tri
-    return -B, B, {"method": "rkhs" if rkhs < tri else "triangle", "triangle_bound": tri, "rkhs_bound": rkhs}
+    a0 = 1.0 if comp.profile is None else comp.profile.a0
+    torque = (math.sqrt(qf * s2 * a0) * (1 + 1e-12)) * comp._inv_l
+    return -B, B, {"method": "rkhs" if rkhs < tri else "triangle", "triangle_bound": tri, "rkhs_bound": rkhs,
+                   "rkhs_norm": math.sqrt(qf), "torque_bound": torque.tolist()}
 
 
 def _erf_grid_bound(comp) -> tuple[float, float, dict]:
@@ -66,12 +81,12 @@ def _erf_grid_bound(comp) -> tuple[float, float, dict]:
     span = float(z.max() - z.min()) + 24 * l
     h = max(l / 200.0, span / 20000.0)  # cap the grid; a coarser step only widens the slack
     grid = np.arange(z.min() - 12 * l, z.max() + 12 * l + h, h)
-    V = comp.potential(grid[:, None])
+    _, V, _ = comp._eval(grid[:, None], False, True, with_prior=False)
     tail = tri * math.erfc(12 / math.sqrt(2))
     slack = T * h / 2 + tail + 1e-12 * tri
     lo, hi = float(V.min()) - slack, float(V.max()) + slack
     lo, hi = max(lo, -tri), min(hi, tri)
-    return lo, hi, {"method": "grid+rkhs-lipschitz", "triangle_bound": tri, "torque_bound": T, "grid_step": float(h)}
+    return lo, hi, {"method": "grid+rkhs-lipschitz", "triangle_bound": tri, "torque_bound": [T], "grid_step": float(h)}
 
 
 def storage_sampled_min(comp, seed: int = 0, n_samples: int = 20000) -> tuple[float, np.ndarray]:
@@ -110,9 +125,12 @@ def check_passivity(comp, n_configs: int = 200, n_loops: int = 50, bounds=None, 
        Figure: max |W| / (torque scale * loop length); pass below ``loop_rtol``.
     3. Lower bound: ``storage`` at ``n_storage_samples`` points in the box and in a box 5x wider;
        pass if the minimum is finite and not below ``comp.storage_lower_bound`` (when present).
+    4. Prior: when ``comp`` has a rigid-body ``prior``, it must be physically consistent
+       (``prior_problems`` lists what is not; a :class:`~mmgp.compensator.Compensator` cannot be
+       built with such a prior, so this catches objects assembled otherwise).
 
     ``bounds``: (2, n) box; default ``comp.bounds`` if present, else [-pi, pi]^n.
-    Returns a dict of worst figures and ``passed`` (all three).
+    Returns a dict of worst figures and ``passed`` (all four).
     """
     rng = np.random.default_rng(seed)
     if bounds is None:
@@ -136,7 +154,11 @@ def check_passivity(comp, n_configs: int = 200, n_loops: int = 50, bounds=None, 
         "storage_lower_bound": None if lb is None else float(lb),
         "storage_bounded_pass": bounded,
     }
-    res["passed"] = bool(res["grad_pass"] and res["loop_pass"] and res["storage_bounded_pass"])
+    prior = getattr(comp, "prior", None)
+    res["prior_problems"] = [] if prior is None else list(prior.consistency_problems())
+    res["prior_consistent_pass"] = not res["prior_problems"]
+    res["passed"] = bool(res["grad_pass"] and res["loop_pass"] and res["storage_bounded_pass"]
+                         and res["prior_consistent_pass"])
     return res
 
 
