@@ -86,13 +86,14 @@ class Compensator:
     Attributes: ``potential_lower_bound`` L, ``potential_upper_bound`` U (J, rigorous on all of R^n,
     prior included), ``potential_bound = max(-L, U)``, ``storage_offset = -L``,
     ``deviation_torque_bound`` (n,) N*m (``|tau_ff - tau_prior| <= it`` everywhere),
+    ``deviation_sampled_max`` (n,) or None (the largest deviation a search found; not a proof),
     ``region_radius`` (1 for Wendland, inf otherwise), ``bound_info``.
     """
 
     def __init__(self, kind: str, support, weights, lengthscales, signal_var: float,
                  joint_names: Sequence[str] | None = None, bounds=None, info: dict | None = None,
                  storage_sampled_min: float | None = None, *, prior: RigidBodyPrior | None = None,
-                 smoothness: int = 3):
+                 smoothness: int = 3, deviation_sampled_max=None):
         if kind not in KINDS:
             raise ValueError(f"unknown compensator kind {kind!r}; expected one of {KINDS}")
         self.kind = kind
@@ -142,6 +143,8 @@ class Compensator:
         self.storage_offset = -lower
         self.storage_lower_bound = 0.0
         self.storage_sampled_min = storage_sampled_min
+        self.deviation_sampled_max = (None if deviation_sampled_max is None else
+                                      np.asarray(deviation_sampled_max, dtype=np.float64).reshape(n))
 
     # -- evaluation -----------------------------------------------------------------------------
     @property
@@ -262,6 +265,8 @@ class Compensator:
                 "definition": "min_a |(q - support_a) / lengthscales| < radius (outside: the prior alone)",
                 "radius": self.region_radius if math.isfinite(self.region_radius) else None},
             "deviation_torque_bound": self.deviation_torque_bound.tolist(),
+            "deviation_sampled_max": (None if self.deviation_sampled_max is None
+                                      else self.deviation_sampled_max.tolist()),
             "potential_bound": self.potential_bound,
             "potential_lower_bound": self.potential_lower_bound,
             "potential_upper_bound": self.potential_upper_bound,
@@ -362,7 +367,8 @@ def load_compensator(path) -> Compensator:
         comp = Compensator(d["kind"], d["support"], d["weights"], d["lengthscales"], d["signal_var"],
                            joint_names=d.get("joint_names"), bounds=d.get("workspace_bounds"),
                            info=d.get("info"), storage_sampled_min=d.get("storage_sampled_min"), prior=prior,
-                           smoothness=int(kernel.get("smoothness", 3)))
+                           smoothness=int(kernel.get("smoothness", 3)),
+                           deviation_sampled_max=d.get("deviation_sampled_max"))
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"file {path}: {exc}") from exc
     # The bounds are recomputed from the weights and the prior, never trusted from the file; a

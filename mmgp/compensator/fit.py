@@ -30,7 +30,7 @@ import numpy as np
 from ..gp.gradient_field import CurlFreeGP, RBFGP
 from .field import Compensator
 from .kernels import WendlandProfile
-from .passivity import storage_sampled_min
+from .passivity import deviation_sampled_max, storage_sampled_min
 from .prior import RigidBodyPrior, prior_from_robot
 
 
@@ -99,6 +99,7 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
             "deviation_rms_per_joint": np.sqrt(np.mean(Y_dev ** 2, axis=0)).tolist()}
     s_min, q_min = storage_sampled_min(comp, seed=seed)
     comp.storage_sampled_min = s_min
+    comp.deviation_sampled_max = deviation_sampled_max(comp, seed=seed)
     info["storage_sampled_argmin"] = np.asarray(q_min).tolist()
     info["build_time_s"] = time.perf_counter() - t0
     comp.info = info

@@ -26,7 +26,16 @@ def potential_bounds(comp) -> tuple[float, float, dict]:
     """
     if comp.kind == "erf-1dof":
         return _erf_grid_bound(comp)
-    return _curl_free_rkhs_bound(comp)
+    lo, hi, info = _curl_free_rkhs_bound(comp)
+    if comp.n_joints == 1:  # one joint: a grid with the RKHS torque bound as Lipschitz constant is tight
+        compact = math.isfinite(comp.region_radius)
+        reach = comp.lengthscales[0] * (comp.region_radius if compact else 12.0)
+        # beyond 12 l a Gaussian term is below s2 |gamma| 12 e^-72 < 1e-30 of the triangle bound
+        g_lo, g_hi, h = _grid_bound(comp, info["torque_bound"][0], reach, 0.0 if compact else 1e-30 * info["triangle_bound"],
+                                    info["triangle_bound"])
+        lo, hi = max(lo, g_lo), min(hi, g_hi)
+        info.update(method="grid+rkhs-lipschitz", grid_step=h)
+    return lo, hi, info
 
 
 def _max_r_a(profile) -> float:
@@ -68,25 +77,28 @@ def _curl_free_rkhs_bound(comp) -> tuple[float, float, dict]:
 
 
 def _erf_grid_bound(comp) -> tuple[float, float, dict]:
-    """|tau| <= T = sqrt(s2 w^T K w) (the RKHS argument for tau), so on a grid of spacing h covering
-    the support +- 12 l, ``V >= min_grid V - T h / 2`` between nodes; beyond the grid
-    ``|V(q) - V(end)| <= sum_a |A_a| erfc(12/sqrt 2)``, negligible."""
+    """erf-1dof: ``|tau| <= T = sqrt(s2 w^T K w)`` (the RKHS argument for tau), then
+    :func:`_grid_bound` over the support +- 12 l; beyond it ``|V(q) - V(end)| <= sum_a |A_a|
+    erfc(12/sqrt 2)``, negligible."""
     tri = float(np.sum(np.abs(comp._erf_amp)))
     l = comp.lengthscales[0]
-    z = comp.support[:, 0]
     w = comp.weights[:, 0]
-    U = (z[:, None] - z[None, :]) / l
-    wKw = float(w @ (comp.signal_var * np.exp(-0.5 * U * U)) @ w)
-    T = math.sqrt(comp.signal_var * max(wKw, 0.0))
-    span = float(z.max() - z.min()) + 24 * l
-    h = max(l / 200.0, span / 20000.0)  # cap the grid; a coarser step only widens the slack
-    grid = np.arange(z.min() - 12 * l, z.max() + 12 * l + h, h)
+    U = (comp.support[:, 0][:, None] - comp.support[:, 0][None, :]) / l
+    T = math.sqrt(comp.signal_var * max(float(w @ (comp.signal_var * np.exp(-0.5 * U * U)) @ w), 0.0))
+    lo, hi, h = _grid_bound(comp, T, 12 * l, tri * math.erfc(12 / math.sqrt(2)), tri)
+    return lo, hi, {"method": "grid+rkhs-lipschitz", "triangle_bound": tri, "torque_bound": [T], "grid_step": h}
+
+
+def _grid_bound(comp, T: float, reach: float, tail: float, tri: float) -> tuple[float, float, float]:
+    """One joint: V_dev on a grid of spacing h covering the support +- ``reach``, widened by the
+    Lipschitz slack ``T h / 2`` (``|dV/dq| <= T``), the ``tail`` beyond the grid and rounding.
+    Returns (lower, upper, h)."""
+    z = comp.support[:, 0]
+    h = max(reach / 2400.0, (float(z.max() - z.min()) + 2 * reach) / 20000.0)  # a coarser step only widens the slack
+    grid = np.arange(z.min() - reach, z.max() + reach + h, h)
     _, V, _ = comp._eval(grid[:, None], False, True, with_prior=False)
-    tail = tri * math.erfc(12 / math.sqrt(2))
     slack = T * h / 2 + tail + 1e-12 * tri
-    lo, hi = float(V.min()) - slack, float(V.max()) + slack
-    lo, hi = max(lo, -tri), min(hi, tri)
-    return lo, hi, {"method": "grid+rkhs-lipschitz", "triangle_bound": tri, "torque_bound": [T], "grid_step": float(h)}
+    return max(float(V.min()) - slack, -tri), min(float(V.max()) + slack, tri), float(h)
 
 
 def storage_sampled_min(comp, seed: int = 0, n_samples: int = 20000) -> tuple[float, np.ndarray]:
@@ -106,6 +118,33 @@ def storage_sampled_min(comp, seed: int = 0, n_samples: int = 20000) -> tuple[fl
         if r.fun < s_min:
             s_min, q_min = float(r.fun), r.x
     return s_min, q_min
+
+
+def deviation_sampled_max(comp, seed: int = 0, n_samples: int = 20000, n_polish: int = 2) -> np.ndarray:
+    """Largest ``|tau_ff - tau_prior|`` per joint (n,) N*m found where the deviation can be non-zero.
+
+    Candidates: the support points and ``n_samples`` points drawn uniformly in the balls of radius
+    ``region_radius`` (3 for a Gaussian kernel) around random support points, in the kernel's
+    metric; then a bounded L-BFGS-B polish (finite-difference gradient) of each joint's
+    ``|tau_dev,i|`` from its ``n_polish`` best candidates. A search, not a proof: the rigorous
+    bound is ``comp.deviation_torque_bound``."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(seed)
+    n = comp.n_joints
+    radius = comp.region_radius if math.isfinite(comp.region_radius) else 3.0
+    centre = comp.support[rng.integers(comp.support.shape[0], size=n_samples)]
+    u = rng.normal(size=(n_samples, n))
+    u *= (radius * rng.random(n_samples) ** (1.0 / n) / np.linalg.norm(u, axis=1))[:, None]
+    cand = np.concatenate([comp.support, centre + u * comp.lengthscales])
+    dev = np.abs(comp.deviation_torque(cand))
+    best = dev.max(axis=0)
+    for i in range(n):
+        for k in np.argsort(dev[:, i])[-n_polish:]:
+            r = minimize(lambda x: -abs(float(comp.deviation_torque(x)[i])), cand[k], method="L-BFGS-B",
+                         options={"maxiter": 50})
+            best[i] = max(best[i], -float(r.fun))
+    return best
 
 
 def check_passivity(comp, n_configs: int = 200, n_loops: int = 50, bounds=None, seed: int = 0, *,
