@@ -117,6 +117,139 @@ def stage_models(out: Path, args) -> dict:
     return info
 
 
+BASELINE_EXPORT = """
+import sys
+from mmgp.compensator import compensator_from_model
+from mmgp.models.trained import TrainedModel
+compensator_from_model(TrainedModel.load(sys.argv[1])).save(sys.argv[2])
+"""
+
+
+def baseline_export(model_dir: Path, path: Path) -> None:
+    """The previous export (/work/baseline: zero-mean RBF potential, no prior) of the same model."""
+    import os
+
+    env = {**os.environ, "PYTHONPATH": str(Path("/work/baseline"))}
+    subprocess.run([sys.executable, "-c", BASELINE_EXPORT, str(model_dir), str(path)], check=True, env=env)
+
+
+def mujoco_static_torque(name: str, Q: np.ndarray, meta: dict) -> np.ndarray:
+    """The simulated plant's own torque at rest (MuJoCo ``qfrc_bias``, payload included): the truth."""
+    import mujoco
+
+    from mmgp.sim import PANDA_JOINTS, load_model, robot_urdf_path
+
+    joints = PANDA_JOINTS if name.startswith("panda") else UR5_JOINTS
+    model = load_model(robot_urdf_path(meta["robot"]), joints, payload=meta["payload"])
+    data = mujoco.MjData(model)
+    out = np.empty_like(Q)
+    for k, q in enumerate(Q):
+        data.qpos[:], data.qvel[:] = q, 0.0
+        mujoco.mj_forward(model, data)
+        out[k] = data.qfrc_bias
+    return out
+
+
+def accuracy(comp, Q, truth) -> dict:
+    e = comp.torque(Q) - truth
+    return {"max_abs_err_per_joint": np.abs(e).max(0).tolist(),
+            "rel_rms": float(np.sqrt(np.mean(e ** 2)) / np.sqrt(np.mean(truth ** 2)))}
+
+
+def evaluate(name: str, out: Path, meta: dict, args) -> dict:
+    """Export, reload, check and score one case (module docstring)."""
+    from mmgp.compensator import check_passivity, compensator_from_model, load_compensator
+    from mmgp.models.trained import TrainedModel
+
+    model = TrainedModel.load(out / f"{name}_model")
+    t0 = time.perf_counter()
+    comp = load_compensator(compensator_from_model(model, seed=args.seed).save(out / f"{name}.npz"))
+    res = {"export_s": time.perf_counter() - t0, "kind": comp.kind, "n_support": int(comp.support.shape[0]),
+           "identification": comp.prior.identification, "radii_rad": comp.lengthscales.tolist(),
+           "radius_scale": comp.info.get("radius_scale"),
+           "deviation_torque_bound": comp.deviation_torque_bound.tolist(),
+           "deviation_sampled_max": comp.deviation_sampled_max.tolist()}
+    chk = check_passivity(comp)
+    res["check_passivity"] = {k: chk[k] for k in ("passed", "grad_max_rel_err", "loop_max_rel_work",
+                                                  "storage_min_sampled", "prior_consistent_pass")}
+    robot = model.robot
+    lo, hi = robot.pin_model.lowerPositionLimit, robot.pin_model.upperPositionLimit
+    Q = lo + (hi - lo) * np.random.default_rng(args.seed + 12).random((500, robot.n_joints))
+    dist = comp.region_distance(Q)
+    res["poses"] = {"inside_region": float(np.mean(dist < 1)), "median_region_distance": float(np.median(dist)),
+                    "median_rad_to_nearest_support": float(np.median(np.min(np.linalg.norm(
+                        Q[:, None] - comp.support[None], axis=2), axis=1)))}
+    if name.endswith("_sim"):
+        truth = mujoco_static_torque(name, Q, meta)
+        res["truth_rms_per_joint"] = np.sqrt(np.mean(truth ** 2, 0)).tolist()
+        res["new"] = accuracy(comp, Q, truth)
+        res["prior_only"] = accuracy(type("P", (), {"torque": comp.prior_torque})(), Q, truth)
+        if args.baseline:
+            baseline_export(out / f"{name}_model", out / f"{name}_baseline.npz")
+            res["baseline"] = accuracy(load_compensator(out / f"{name}_baseline.npz"), Q, truth)
+    else:
+        dev = np.abs(comp.deviation_torque(Q))
+        near = comp.support + np.random.default_rng(1).normal(size=comp.support.shape) * 0.05
+        res["max_abs_deviation_uniform"] = dev.max(0).tolist()
+        res["max_abs_deviation_near_data"] = np.abs(comp.deviation_torque(near)).max(0).tolist()
+        res["within_rigorous_bound"] = bool(np.all(dev <= comp.deviation_torque_bound))
+        res["within_sampled_max"] = bool(np.all(dev <= comp.deviation_sampled_max))
+        zero = np.zeros(robot.n_joints)
+        res["zero_pose"] = {"tau_ff": comp.torque(zero).tolist(), "prior": comp.prior_torque(zero).tolist(),
+                            "region_distance": comp.region_distance(zero)}
+        res["refusal"] = refusal(out / f"{name}.npz", out)
+    return res
+
+
+def refusal(path: Path, out: Path) -> dict:
+    """A copy of the file with the payload body's mass made negative: load and the CLI must refuse."""
+    from typer.testing import CliRunner
+
+    from mmgp.cli import app
+    from mmgp.compensator import load_compensator
+
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays.pop("meta")))
+    meta["prior"]["masses"][-1] = -0.7
+    bad = out / "negative_mass.npz"
+    np.savez(bad, meta=np.array(json.dumps(meta)), **arrays)
+    try:
+        load_compensator(bad)
+        loaded = "loaded (WRONG)"
+    except ValueError as exc:
+        loaded = f"refused: {exc}"
+    cli = CliRunner().invoke(app, ["check-passivity", str(bad)])
+    return {"load_compensator": loaded, "check_passivity_exit_code": cli.exit_code, "cli_output": cli.output.strip()}
+
+
+def report(results: dict) -> None:
+    f = lambda a, p=2: "[" + ", ".join(f"{x:.{p}f}" for x in a) + "]"  # noqa: E731
+    for name, r in results.items():
+        pl = r["identification"]["payload"]
+        print(f"\n== {name}: {r['kind']}, {r['n_support']} support points, export {r['export_s']:.0f} s; "
+              f"payload {pl['mass']:.4f} kg at {f(pl['com'], 4)} m (free fit m = {pl['unconstrained_first_moments'][0]:.4f}"
+              f" kg; active {pl['active_constraints']}); re-identified masses "
+              f"{f(r['identification']['reidentified']['masses'], 3)} (URDF {f(r['identification']['nominal_masses'], 3)}) kg")
+        print(f"   radii (rad) {f(r['radii_rad'])} (scale {r['radius_scale']}); 500 uniform poses: inside the region "
+              f"{r['poses']['inside_region']:.3f}, median region distance {r['poses']['median_region_distance']:.2f}, "
+              f"median distance to the nearest support pose {r['poses']['median_rad_to_nearest_support']:.2f} rad")
+        print(f"   check_passivity: {r['check_passivity']}")
+        for k in ("new", "prior_only", "baseline"):
+            if k in r:
+                print(f"   {k:10s} max |tau - truth| per joint {f(r[k]['max_abs_err_per_joint'], 3)} N*m, "
+                      f"relative RMS {r[k]['rel_rms']:.4f}")
+        if "max_abs_deviation_uniform" in r:
+            print(f"   max |tau_ff - tau_prior| at the 500 poses {f(r['max_abs_deviation_uniform'], 3)}; near the data "
+                  f"{f(r['max_abs_deviation_near_data'])}")
+            print(f"   stated bounds: rigorous {f(r['deviation_torque_bound'], 1)}; sampled max "
+                  f"{f(r['deviation_sampled_max'])}; within both: {r['within_rigorous_bound']}, {r['within_sampled_max']}")
+            z = r["zero_pose"]
+            print(f"   zero pose: tau_ff {f(z['tau_ff'])}, prior {f(z['prior'])}, region distance {z['region_distance']:.2f}")
+            print(f"   negative-mass file: {r['refusal']['load_compensator'][:120]}; check-passivity exit "
+                  f"{r['refusal']['check_passivity_exit_code']}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True)
@@ -124,11 +257,18 @@ def main():
     ap.add_argument("--cases", default="panda_sim,ur5_sim,panda_real")
     ap.add_argument("--stage", default="all", choices=["models", "all"])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--baseline", action="store_true", help="also score the previous export (/work/baseline)")
     args = ap.parse_args()
     args.cases = args.cases.split(",")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    stage_models(out, args)
+    info = stage_models(out, args)
+    if args.stage == "models":
+        return
+    results = {name: dict(evaluate(name, out, info[name], args), training=info[name]) for name in info}
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    report(results)
+    print(f"\nresults.json, compensator files and models in {out}")
 
 
 if __name__ == "__main__":

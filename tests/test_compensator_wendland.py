@@ -148,7 +148,7 @@ def test_learned_deviation_over_prior_is_passive_and_safe():
     model = GravityPlusSpring()
     comp = compensator_from_model(model, max_support=120, max_hyper_points=60, max_iter=25)
     assert comp.kind == "curl-free-wendland" and comp.prior is not None
-    assert comp.prior.payload["mass"] == pytest.approx(0.4, abs=1e-3)
+    assert comp.prior.identification["payload"]["mass"] == pytest.approx(0.4, abs=1e-3)
     near = model.home + np.random.default_rng(5).uniform(-0.5, 0.5, (200, 6))
     err = comp.torque(near) - model.nominal_torque(near)
     assert np.sqrt(np.mean(err ** 2)) < 0.05 * np.sqrt(np.mean(model.nominal_torque(near) ** 2))

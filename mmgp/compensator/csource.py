@@ -100,7 +100,7 @@ def _header(comp, ident: str) -> str:
     radius = "HUGE_VAL" if not math.isfinite(comp.region_radius) else _num(comp.region_radius)
     fmt = lambda a: "[" + ", ".join(f"{x:.4g}" for x in a) + "]"  # noqa: E731
     if comp.prior is not None:
-        pl = comp.prior.payload or {}
+        pl = (comp.prior.identification or {}).get("payload") or {}
         prior = (f"rigid-body gravity of {n} joints, total mass {comp.prior.masses.sum():.4g} kg (all masses >= 0)"
                  + (f", incl. a payload of {pl['mass']:.4g} kg at {fmt(pl['com'])} m in {pl.get('link')}'s frame"
                     if "mass" in pl else ""))

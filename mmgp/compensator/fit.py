@@ -6,19 +6,32 @@ estimator that can give its nominal torque at rest works (the saved ``TrainedMod
 
 Choices (issue 12):
 
-* The mean is the rigid-body gravity of the model's ``robot`` (when it has one) with a payload on
-  the body of the last joint, the body the EM's payload mean describes. The payload is fitted here,
-  with physical consistency, from what the model learned: the model's static nominal torque at its
-  support poses minus the nominal URDF gravity, by :func:`mmgp.physics.consistent.fit_point_mass`
-  (mass >= 0, centre of mass within ``payload_com_radius`` of the joint's origin). The EM's own
-  per-mode payload mean is an unconstrained 10-parameter fit (it has come out with negative
-  masses on real data) and is not used directly.
+* The mean is the rigid-body gravity of the model's ``robot`` (when it has one), re-identified with
+  physical consistency from what the model learned, its static nominal torque at its support poses
+  (:func:`model_prior`): first a payload on the body of the last joint, the body the EM's payload
+  mean describes (:func:`mmgp.physics.consistent.fit_point_mass`: mass >= 0, centre of mass within
+  ``payload_com_radius`` of the joint's origin), then every body's mass and first moment
+  (log-Cholesky, ridge towards the nominal URDF plus that payload). The EM's own per-mode payload
+  mean is an unconstrained 10-parameter fit (it has come out with negative masses on real data) and
+  is not used directly. Measured: on the simulated Panda (0.5 kg payload) the payload alone is
+  exact (0.4996 kg) and the re-identification keeps it; on the real Panda the payload clips to 0
+  (free fit -0.59 kg) and the re-identification takes the deviation the GP must carry from
+  2.2 / 2.9 N*m RMS to 0.4 / 0.3 N*m on joints 2 / 4.
 * The deviation ``nominal_torque - grad V_rb`` is learned by a curl-free GP with Wendland's compactly
   supported kernel (:class:`mmgp.compensator.kernels.WendlandProfile`, smoothness 3). Its support
   radii are fitted by the marginal likelihood, started at 3 standard deviations of the support
-  positions per joint and capped at ``max_radius_fraction`` of the support's range per joint (the
-  valid region must not reach much beyond the data, and a short radius keeps the C evaluation
-  sparse).
+  positions per joint and capped at ``max_radius_fraction`` (1) times the support's range per
+  joint: the valid region reaches at most one data range beyond the data. Then all radii are
+  shrunk by one factor, if needed, until a support point has at most ``max_neighbours`` (150)
+  support points within its radius on average, which bounds the work of the C evaluation near
+  the data (``info["radius_scale"]``; real Panda, 1,000 support points, CPU time per call near the
+  data on the shared benchmark machine: 2.1 / 3.1 / 4.5 us for 64 / 100 / 150). Measured
+  trade-off (short radii revert to the prior sooner, the kernel's curvature lengthscale being
+  radius / 4.7-5.6): on the real Panda, radii of 0.54 / 0.36 of the likelihood's optimum (budgets
+  150 / 100) left held-out trajectory poses 0.017 / 0.29 N*m off the model (at most), and raised
+  the largest deviation found near the data from 8.3 to 14 N*m (joint 4; unlimited radii, 32 % of
+  uniform poses inside the region instead of 2 %); radii capped at half the data range instead of
+  one raised the error between the passes of a sparse 2-link trajectory from 3-7 % to 35-70 %.
 """
 from __future__ import annotations
 
@@ -43,7 +56,8 @@ class FeedforwardSource(Protocol):
     ``nominal_torque(q)`` : q (T, n) rad -> (T, n) N*m, the model's torque at rest
         (dq = ddq = 0) in its nominal mode, rigid-body part included when it has one.
     ``joint_names_`` : optional, n joint names (default ``q_0, q_1, ...``).
-    ``robot`` : optional :class:`mmgp.physics.robot.RobotModel` (None: no rigid-body prior).
+    ``robot_`` (the public estimator's fitted robot) or ``robot`` (``TrainedModel``): optional
+        :class:`mmgp.physics.robot.RobotModel` (none: no rigid-body prior); see :func:`model_robot`.
     """
 
     support_q_: np.ndarray
@@ -54,34 +68,36 @@ class FeedforwardSource(Protocol):
 def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000, seed: int = 0,
                            max_hyper_points: int | None = None, max_iter: int = 75, kernel: str = "wendland",
                            prior: str = "auto", payload_com_radius: float = 0.5,
-                           max_radius_fraction: float = 0.5) -> Compensator:
+                           max_radius_fraction: float = 1.0, max_neighbours: int | None = 150) -> Compensator:
     """Build the passive feedforward ``tau_ff(q) = grad (V_rb + V_dev)(q)`` from a learned model.
 
     ``model``: see :class:`FeedforwardSource`. Support points are a random subset of the distinct
     ``support_q_`` rows of size ``max_support`` (the final solve has ``max_support * n`` unknowns,
     O((N n)^3) time; 1000 points x 7 joints is a 7000 system, a few seconds). Targets are the
     model's own ``nominal_torque`` at those points, so the compensator approximates the model, not
-    the raw data. ``prior``: "auto" (the rigid-body prior when the model has a ``robot``) or "none".
+    the raw data. ``prior``: with a model that has a ``robot``, "auto" (the rigid-body prior with a
+    payload and every body re-identified, :func:`model_prior`), "payload" (nominal bodies plus the
+    payload only) or "none" (zero mean, as without a robot).
     ``kernel``: "wendland" (kind ``curl-free-wendland``, a valid region, module docstring) or "rbf"
     (the Gaussian kinds of format version 1: ``erf-1dof`` for one joint, ``curl-free-rbf``).
     Hyperparameters are fitted on ``max_hyper_points`` support points (default 150 for the curl-free
     GP, 500 for one joint's RBF). ``info`` records the hyperparameters, the identified payload,
     training error per joint, timings and where the sampled storage minimum lies.
     """
-    if kernel not in ("wendland", "rbf") or prior not in ("auto", "none"):
-        raise ValueError("kernel must be 'wendland' or 'rbf', prior 'auto' or 'none'")
+    if kernel not in ("wendland", "rbf") or prior not in ("auto", "payload", "none"):
+        raise ValueError("kernel must be 'wendland' or 'rbf', prior 'auto', 'payload' or 'none'")
     t0 = time.perf_counter()
     Q = _support_positions(model, max_support, np.random.default_rng(seed))
     Y = np.asarray(model.nominal_torque(Q), dtype=np.float64).reshape(Q.shape)
     n = Q.shape[1]
     names = list(getattr(model, "joint_names_", None) or [f"q_{i}" for i in range(n)])
-    robot = getattr(model, "robot", None) if prior == "auto" else None
-    rb = model_prior(model, robot, payload_com_radius) if robot is not None else None
+    robot = model_robot(model) if prior != "none" else None
+    rb = model_prior(model, robot, payload_com_radius, reidentify=prior == "auto") if robot is not None else None
     Y_dev = Y - rb.torque(Q) if rb is not None else Y
     if kernel == "wendland":
         span = np.maximum(Q.max(0) - Q.min(0), 1e-3)
-        gp = CurlFreeGP(max_hyper_points, max_iter, seed=seed, profile=WendlandProfile(n),
-                        lengthscale_init=3.0, max_lengthscale=max_radius_fraction * span).fit(Q, Y_dev)
+        gp = CurlFreeGP(max_hyper_points, max_iter, seed=seed, profile=WendlandProfile(n), lengthscale_init=3.0,
+                        max_lengthscale=max_radius_fraction * span, max_neighbours=max_neighbours).fit(Q, Y_dev)
         kind = "curl-free-wendland"
     elif n == 1:
         gp, kind = RBFGP(max_hyper_points, max_iter, seed=seed).fit(Q, Y_dev), "erf-1dof"
@@ -91,9 +107,10 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
                        bounds=np.stack([Q.min(0), Q.max(0)]), prior=rb)
     fit = comp.torque(Q)
     info = {"lengthscales": gp.lengthscales_.tolist(), "signal_var": gp.signal_var_,
+            "radius_scale": getattr(gp, "radius_scale_", None),
             "noise_var": gp.noise_var_.tolist(), "nll_per_datum": gp.nll_, "jitter": gp.jitter_,
             "hyper_time_s": gp.hyper_time_s_, "solve_time_s": gp.solve_time_s_,
-            "prior": None if rb is None else {"payload": rb.payload, "nominal_robot": getattr(robot, "name", None)},
+            "prior": None if rb is None else dict(rb.identification, nominal_robot=getattr(robot, "name", None)),
             "train_rmse_per_joint": np.sqrt(np.mean((fit - Y) ** 2, axis=0)).tolist(),
             "train_nmse_per_joint": (np.mean((fit - Y) ** 2, axis=0) / np.maximum(np.var(Y, axis=0), 1e-300)).tolist(),
             "deviation_rms_per_joint": np.sqrt(np.mean(Y_dev ** 2, axis=0)).tolist()}
@@ -106,24 +123,51 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
     return comp
 
 
-def model_prior(model: FeedforwardSource, robot, com_radius: float = 0.5) -> RigidBodyPrior:
-    """The rigid-body prior of ``robot`` plus a payload identified from ``model`` (module docstring).
+def model_robot(model):
+    """The model's rigid-body model: ``robot_`` (``MultimodalGP``, fitted) or else ``robot``
+    (``TrainedModel``), when it is a RobotModel (has ``regressor``); otherwise None (a setting such
+    as a robot's name is not a model)."""
+    robot = getattr(model, "robot_", None)
+    if robot is None:
+        robot = getattr(model, "robot", None)
+    return robot if hasattr(robot, "regressor") and hasattr(robot, "pin_model") else None
 
-    The payload is the consistent point mass on the last joint's body that best explains
-    ``model.nominal_torque(q) - robot.gravity(q)`` over the distinct ``support_q_`` rows, using the
-    first four (mass, first moment) columns of that body's static regressor."""
-    from ..physics.consistent import fit_point_mass
+
+def model_prior(model: FeedforwardSource, robot, com_radius: float = 0.5, reidentify: bool = True,
+                ridge: float = 1e-2) -> RigidBodyPrior:
+    """The rigid-body prior of ``robot`` identified, with physical consistency, from ``model``.
+
+    Data: ``tau = model.nominal_torque(q)`` at the distinct ``support_q_`` rows, and the robot's
+    static regressor ``Y(q)`` (gravity is ``Y pi``). First a payload on the last joint's body: the
+    consistent point mass (:func:`~mmgp.physics.consistent.fit_point_mass`, mass >= 0, com within
+    ``com_radius`` of the joint) that best explains ``tau - Y pi_nominal``. Then, with
+    ``reidentify``, every body's parameters by :func:`~mmgp.physics.consistent.fit_consistent_parameters`
+    (log-Cholesky: every body stays physical) with a ridge towards the nominal-plus-payload values
+    for what gravity cannot tell apart. The prior keeps each body's mass and centre of mass; the
+    file records the payload, the re-identified and nominal masses and the fit residuals.
+    """
+    from ..physics.consistent import fit_consistent_parameters, fit_point_mass
+    from ..physics.robot import point_mass_parameters
 
     Q = np.unique(np.asarray(model.support_q_, dtype=np.float64), axis=0)
-    resid = np.asarray(model.nominal_torque(Q), dtype=np.float64).reshape(Q.shape) - robot.gravity(Q)
-    A = robot.regressor(Q)[..., -10:-6]
-    fit = fit_point_mass(A.reshape(-1, 4), resid.reshape(-1), com_radius=com_radius)
-    info = {"body_of_joint": robot.joint_names[-1], "link": robot.body_names[-1], "mass": fit.mass,
-            "com": fit.com.tolist(), "com_radius": com_radius, "active_constraints": fit.active,
-            "unconstrained_first_moments": fit.unconstrained.tolist(),
-            "residual_rms": fit.residual_rms, "n_poses": int(Q.shape[0]),
-            "how": "consistent point mass fitted to nominal_torque - URDF gravity at the support poses"}
-    return prior_from_robot(robot, payload=(fit.mass, fit.com), payload_info=info)
+    tau = np.asarray(model.nominal_torque(Q), dtype=np.float64).reshape(Q.shape)
+    Y = robot.regressor(Q)
+    nominal = robot.dynamic_parameters()
+    fit = fit_point_mass(Y[..., -10:-6].reshape(-1, 4), (tau - Y @ nominal).reshape(-1), com_radius=com_radius)
+    pi = nominal.copy()
+    pi[-10:] += point_mass_parameters(fit.mass, fit.com)
+    info = {"payload": {"body_of_joint": robot.joint_names[-1], "link": robot.body_names[-1], "mass": fit.mass,
+                        "com": fit.com.tolist(), "com_radius": com_radius, "active_constraints": fit.active,
+                        "unconstrained_first_moments": fit.unconstrained.tolist(), "residual_rms": fit.residual_rms},
+            "n_poses": int(Q.shape[0]), "nominal_masses": nominal[0::10].tolist(),
+            "how": ("consistent point mass on the last body fitted to nominal_torque - URDF gravity at the support "
+                    "poses" + ("; then every body re-identified (log-Cholesky, ridge towards it)" if reidentify else ""))}
+    if reidentify:
+        pi, rid = fit_consistent_parameters(Y.reshape(-1, nominal.size), tau.reshape(-1), pi, ridge=ridge)
+        info["reidentified"] = dict(rid, masses=pi[0::10].tolist(), ridge=ridge)
+    masses = pi[0::10]
+    coms = np.stack([pi[10 * i + 1:10 * i + 4] / max(masses[i], 1e-300) for i in range(masses.size)])
+    return prior_from_robot(robot, bodies=(masses, coms), identification=info)
 
 
 def _support_positions(model: FeedforwardSource, max_support: int, rng: np.random.Generator) -> np.ndarray:

@@ -40,11 +40,12 @@ class RigidBodyPrior:
     rotations (n, 3, 3), translations (n, 3): joint placement in the parent joint's frame (m).
     masses (n,) kg, coms (n, 3) m: each moving body's mass and centre of mass in its joint frame.
     gravity (3,) m/s^2 in the base frame. limits (2, n) rad or m (inf allowed for revolute joints).
-    payload: optional dict recording what was added to the nominal bodies (for the report).
+    identification: optional dict recording how the bodies were found (payload, re-identified
+    masses, residuals); stored in the file for the report, not used by the evaluation.
     """
 
     def __init__(self, parents, types, axes, rotations, translations, masses, coms, gravity,
-                 limits=None, payload: dict | None = None):
+                 limits=None, identification: dict | None = None):
         self.parents = np.asarray(parents, dtype=np.int64).reshape(-1)
         n = self.parents.size
         self.types = [str(t) for t in types]
@@ -53,7 +54,7 @@ class RigidBodyPrior:
         self.translations, self.masses, self.coms = f(translations, (n, 3)), f(masses, (n,)), f(coms, (n, 3))
         self.gravity = f(gravity, (3,))
         self.limits = _limits(limits, n)
-        self.payload = dict(payload) if payload else None
+        self.identification = dict(identification) if identification else None
         if len(self.types) != n:
             raise ValueError("types must list one type per joint")
         problems = self.consistency_problems()
@@ -157,7 +158,7 @@ class RigidBodyPrior:
         return {"kind": "rigid-body-gravity", "gravity": self.gravity.tolist(), "parents": self.parents.tolist(),
                 "types": list(self.types), "axes": self.axes.tolist(), "rotations": self.rotations.tolist(),
                 "translations": self.translations.tolist(), "masses": self.masses.tolist(),
-                "coms": self.coms.tolist(), "limits": lim, "payload": self.payload,
+                "coms": self.coms.tolist(), "limits": lim, "identification": self.identification,
                 "potential_lower_bound": self.potential_lower_bound,
                 "definition": ("V(q) = -sum_j masses_j gravity . c_j(q), c_j = o_j + R_j coms_j; R_j = R_parent "
                                "rotations_j Rot(axes_j, q_j) (revolute) or R_parent rotations_j (prismatic); "
@@ -169,7 +170,7 @@ class RigidBodyPrior:
         if d.get("kind") != "rigid-body-gravity":
             raise ValueError(f"unknown prior kind {d.get('kind')!r}")
         return cls(d["parents"], d["types"], d["axes"], d["rotations"], d["translations"], d["masses"], d["coms"],
-                   d["gravity"], limits=d.get("limits"), payload=d.get("payload"))
+                   d["gravity"], limits=d.get("limits"), identification=d.get("identification"))
 
     def __repr__(self):
         return f"RigidBodyPrior(n_joints={self.n_joints}, total_mass={self.masses.sum():.4g} kg)"
@@ -193,11 +194,14 @@ def _rodrigues(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return c * np.eye(3) + s * K + (1.0 - c) * np.outer(axis, axis)
 
 
-def prior_from_robot(robot, payload: tuple[float, np.ndarray] | None = None, payload_info: dict | None = None) -> RigidBodyPrior:
+def prior_from_robot(robot, payload: tuple[float, np.ndarray] | None = None, identification: dict | None = None,
+                     bodies: tuple[np.ndarray, np.ndarray] | None = None) -> RigidBodyPrior:
     """The prior of a :class:`mmgp.physics.robot.RobotModel` (its reduced Pinocchio model).
 
-    ``payload``: optional ``(mass kg, com (3,) m)`` added to the body of the last joint (com in that
-    joint's frame), the body the EM's payload mean describes. ``payload_info`` is stored as is.
+    ``bodies``: optional ``(masses (n,) kg, coms (n, 3) m)`` replacing the nominal bodies (e.g.
+    re-identified ones; coms in the joint frames). ``payload``: optional ``(mass kg, com (3,) m)``
+    added to the body of the last joint (com in that joint's frame), the body the EM's payload
+    mean describes. ``identification`` is stored as is (the file's record of how they were found).
     """
     import pinocchio as pin
 
@@ -217,8 +221,11 @@ def prior_from_robot(robot, payload: tuple[float, np.ndarray] | None = None, pay
     for j in range(1, m.njoints):
         if m.nqs[j] == 1:
             lim[:, j - 1] = m.lowerPositionLimit[m.idx_qs[j]], m.upperPositionLimit[m.idx_qs[j]]
-    masses = np.array([m.inertias[j].mass for j in range(1, m.njoints)])
-    coms = np.array([np.asarray(m.inertias[j].lever) for j in range(1, m.njoints)])
+    if bodies is None:
+        masses = np.array([m.inertias[j].mass for j in range(1, m.njoints)])
+        coms = np.array([np.asarray(m.inertias[j].lever) for j in range(1, m.njoints)])
+    else:
+        masses, coms = np.array(bodies[0], dtype=np.float64), np.array(bodies[1], dtype=np.float64)
     if payload is not None:
         mp, cp = float(payload[0]), np.asarray(payload[1], dtype=np.float64)
         total = masses[-1] + mp
@@ -229,4 +236,4 @@ def prior_from_robot(robot, payload: tuple[float, np.ndarray] | None = None, pay
                           rotations=[np.asarray(m.jointPlacements[j].rotation) for j in range(1, m.njoints)],
                           translations=[np.asarray(m.jointPlacements[j].translation) for j in range(1, m.njoints)],
                           masses=masses, coms=coms, gravity=np.asarray(m.gravity.linear), limits=lim,
-                          payload=payload_info)
+                          identification=identification)
