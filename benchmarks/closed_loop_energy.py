@@ -21,10 +21,12 @@ damping: a "pure stiffness", and ``K = 0``: "zero impedance"):
     (whose target is the library's own ``TrainedModel.nominal_torque``: GP averaged over both
     friction signs, payload mean and rigid-body part included), ``.save``, ``mmgp.load_compensator``
     (numpy) in the 1 kHz loop; "learned model (before export)" is ``nominal_torque`` itself
-    (static torque figures only),
+    (static torque figures only). The export's mean is the rigid-body gravity re-identified from
+    the model (Panda: payload, then every body; lever: no robot, zero mean) and its learned
+    deviation is compactly supported, so beyond its valid region it is exactly that prior,
   * ``stand-in``: the same export applied to the plant's exact static torque (MuJoCo
-    ``qfrc_bias`` at rest, including the payload) on random configurations: what the export does
-    to a perfect model.
+    ``qfrc_bias`` at rest, including the payload; Panda: with the nominal robot as its ``robot``)
+    on random configurations: what the export does to a perfect model.
 
 Rubber-mallet test: 20 ms sin^2 force pulses at fixed times, in pairs: a hit, then an opposite hit
 shortly after that catches the rebound and takes energy out (lever: 40 N then 30 N at the load,
@@ -39,9 +41,12 @@ displacement). With the feedforward ``tau_ff = grad V``, the closed loop has sto
 sampled minimum over the joint limits for the Panda (MuJoCo's own potential-energy figure).
 
 Figures: static torque error against the plant's exact static torque, RMS and static tracking
-error (before the first hit) per variant, the time the pose holds (|q - q_d| <= 0.05 rad), min E_in
-vs -beta_0, max (H - H0) - E_in (re-checked at a 4x finer step where it exceeds 1 mJ). Plots (PNG),
-the recordings, the exported compensators and results.json go to ``--out``.
+error (before the first hit) per variant, the time the pose holds (|q - q_d| <= 0.05 rad), the
+share of the run inside the workspace (Panda: its joint limits; lever: the [-1, 1.6] rad range of
+the training box) and, for the exports, inside their valid region, the largest joint excursion,
+min E_in (energy into the plant through the port; >= 0 when the loop is passive around a minimum of
+its storage) vs -beta_0, max (H - H0) - E_in (re-checked at a 4x finer step where it exceeds
+1 mJ). Plots (PNG), the recordings, the exported compensators and results.json go to ``--out``.
 
     python benchmarks/closed_loop_energy.py --out /tmp/cle [--plants lever,panda] [--support 400]
         [--panda-samples 2000] [--max-sweeps 15]

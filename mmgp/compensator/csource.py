@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
+from .._version import __version__
 
 
 def _ident(stem: str) -> str:
@@ -170,9 +170,7 @@ def _prior_consts(prior) -> list[str]:
             _arr("GRAV", prior.gravity, 3)]
 
 
-def _prior_body(prior) -> str:
-    if prior is None:
-        return """
+_NO_PRIOR_C = """
 static void prior_eval(const double *q, double *tau, double *v)
 {
     int j;
@@ -181,7 +179,8 @@ static void prior_eval(const double *q, double *tau, double *v)
     if (v) *v = 0.0;
 }
 """
-    return """
+
+_PRIOR_C = """
 static void mat_mul(const double *A, const double *B, double *C)
 {
     int r, c;
@@ -245,6 +244,10 @@ static void prior_eval(const double *q, double *tau, double *v)
     }
 }
 """
+
+
+def _prior_body(prior) -> str:
+    return _NO_PRIOR_C if prior is None else _PRIOR_C
 
 
 def kd_tree(zs: np.ndarray, leaf_size: int = 16):
@@ -318,8 +321,7 @@ def _wendland_consts(comp) -> list[str]:
             _arr("NODE_LEAF", slot, 8, "int")]
 
 
-def _wendland_body() -> str:
-    return """
+_WENDLAND_C = """
 static double ipow(double t, int e)
 {
     double p = 1.0;
@@ -400,6 +402,11 @@ static double deviation(const double *q, double *tau, double *v)
     return s.r2min;
 }
 """
+
+
+def _wendland_body() -> str:
+    return _WENDLAND_C
+
 
 
 def _rbf_body() -> str:
