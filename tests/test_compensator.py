@@ -213,13 +213,15 @@ def test_two_link_accuracy_and_passivity(arm, comp2):
     Qt = rng.uniform(-1.4, 1.4, (400, 2))
     ref = arm.nominal_torque(Qt)
     err = comp2.torque(Qt) - ref
-    # The support radius is capped at half the data's span (the valid region must not reach far
-    # beyond the data), so the kernel is short (its curvature lengthscale is radius / 4.7 here)
-    # and a whole gravity field without a prior needs dense data: 1% with 400 points (17% with 120).
-    assert np.sqrt(np.mean(err ** 2)) < 2e-2 * np.sqrt(np.mean(ref ** 2))
+    # The support radii are capped at the data's range and by the neighbour budget (the valid
+    # region must not reach far beyond the data; the C evaluation stays sparse), so the kernel is
+    # short (its curvature lengthscale is radius / 4.7 here) and a whole gravity field without a
+    # prior needs dense data: 2.9 % here with 400 support positions (half of them the tube around
+    # the data).
+    assert np.sqrt(np.mean(err ** 2)) < 4e-2 * np.sqrt(np.mean(ref ** 2))
     # the learned potential matches the true one up to a constant
     dV = comp2.potential(Qt) - arm.potential(Qt)
-    assert np.std(dV) < 2e-2 * np.std(arm.potential(Qt))
+    assert np.std(dV) < 4e-2 * np.std(arm.potential(Qt))
     res = check_passivity(comp2, n_configs=100, n_loops=30, seed=1)
     assert res["passed"], res
     assert res["loop_max_rel_work"] < 1e-9
@@ -254,7 +256,7 @@ def test_storage_rigorous_bound(comp2):
     assert comp2.storage_sampled_min >= 0
     assert B <= comp2.bound_info["triangle_bound"]
     # beyond the valid region the feedforward is exactly its prior (zero here: no robot)
-    far = np.array([[40.0, -35.0], [1.5 + 1.01 * comp2.lengthscales[0], 0.0]])
+    far = np.array([[40.0, -35.0], [comp2.bounds[1, 0] + 1.01 * comp2.lengthscales[0], 0.0]])
     assert np.all(comp2.region_distance(far) > 1)
     np.testing.assert_array_equal(comp2.torque(far), 0.0)
 

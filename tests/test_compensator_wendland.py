@@ -203,3 +203,16 @@ def test_c_source_with_prior_matches_python(with_prior, tmp_path):
         assert np.max(np.abs(pout - p_ref)) < 1e-10 * max(scale, 1.0)
         assert abs(rho - r_ref) < 1e-12
         assert abs(lib.ff_storage(qc.ctypes.data_as(dp)) - s_ref) < 1e-10 * s_scale
+
+
+def test_neighbour_budget_is_the_largest_scale_that_keeps_it():
+    from mmgp.gp.gradient_field import neighbour_limited_scale
+
+    rng = np.random.default_rng(8)
+    Z = np.cumsum(rng.normal(size=(300, 5)) * 0.05, axis=0)  # a random walk, like a trajectory
+    D = np.linalg.norm(Z[:, None] - Z[None], axis=2)
+    for K in (10, 40, 120):
+        c = neighbour_limited_scale(Z, K)
+        assert np.mean(np.sum(D < c, axis=1)) <= K < np.mean(np.sum(D < c * (1 + 1e-9), axis=1))
+    # sparse enough already (only themselves within 1), or a budget above the point count
+    assert neighbour_limited_scale(Z * 100, 1) == 1.0 and neighbour_limited_scale(Z, 400) == 1.0

@@ -114,6 +114,7 @@ class _PotentialGP(BaseEstimator):
     _kernel_np: staticmethod
     lengthscale_init: float = 1.0
     max_lengthscale = None
+    noise_init: float = 1e-3
 
     def __init__(self, max_hyper_points: int | None = None, max_iter: int | None = None,
                  noise_floor_rel: float = 1e-8, seed: int = 0):
@@ -131,7 +132,8 @@ class _PotentialGP(BaseEstimator):
         t0 = time.perf_counter()
         kernel_torch, kernel_np = self._kernels()
         hyper = partial(fit_potential_hyper, Q[sub], Y[sub], kernel_torch, gradient_targets=self._gradient_targets,
-                        max_iter=self.max_iter or self.default_iter, noise_floor_rel=self.noise_floor_rel)
+                        max_iter=self.max_iter or self.default_iter, noise_floor_rel=self.noise_floor_rel,
+                        noise_init=self.noise_init)
         l, s2, noise, nll = hyper(lengthscale_init=self.lengthscale_init, max_lengthscale=self.max_lengthscale)
         # (fitting the signal and noise variances again for shrunk radii changed no figure: the
         # real Panda export's held-out errors and deviation maxima agreed to 1e-3)
@@ -170,7 +172,10 @@ class CurlFreeGP(_PotentialGP):
     (support radii) are shrunk by one factor until the support points have at most this many
     support points within their radius on average (:func:`neighbour_limited_scale`); the
     evaluation cost of the exported field grows with that number. ``radius_scale_`` records the
-    factor (1: no shrinking).
+    factor (1: no shrinking). ``noise_init``: the noise variances start at this times the targets'
+    mean squares (the likelihood has a low-noise optimum that interpolates, and, for targets that
+    are not exactly a gradient field, a second one that calls the non-conservative part noise;
+    which one the optimiser reaches depends on where it starts).
     """
 
     default_hyper_points = 150
@@ -181,8 +186,9 @@ class CurlFreeGP(_PotentialGP):
 
     def __init__(self, max_hyper_points: int | None = None, max_iter: int | None = None,
                  noise_floor_rel: float = 1e-8, seed: int = 0, profile=None, lengthscale_init: float = 1.0,
-                 max_lengthscale=None, max_neighbours: int | None = None):
+                 max_lengthscale=None, max_neighbours: int | None = None, noise_init: float = 1e-3):
         super().__init__(max_hyper_points, max_iter, noise_floor_rel, seed)
+        self.noise_init = noise_init
         self.profile = profile
         self.lengthscale_init = lengthscale_init
         self.max_lengthscale = max_lengthscale
@@ -236,21 +242,25 @@ def neighbour_limited_scale(Z, max_neighbours: int) -> float:
     N = Z.shape[0]
     if max_neighbours >= N:
         return 1.0
-    sq = np.sum(Z * Z, axis=1)
-    d = np.sqrt(np.maximum(sq[:, None] + sq[None] - 2 * Z @ Z.T, 0.0)).ravel()
-    np.fill_diagonal(d.reshape(N, N), 0.0)
+    d = np.empty((N, N))
+    step = max(1, 2_000_000 // max(1, Z.size))
+    for s in range(0, N, step):  # differences, not the Gram expansion: the evaluators' own rounding
+        D = Z[s:s + step, None, :] - Z[None]
+        d[s:s + step] = np.sqrt(np.sum(D * D, axis=2))
+    d = d.ravel()
     k = int(max_neighbours) * N
     return float(min(1.0, np.partition(d, k)[k]))
 
 
 def fit_potential_hyper(X, Y, kernel, *, gradient_targets: bool, max_iter: int = 100, noise_floor_rel: float = 1e-8,
-                        lengthscale_init: float = 1.0, max_lengthscale=None):
+                        lengthscale_init: float = 1.0, max_lengthscale=None, noise_init: float = 1e-3):
     """Maximise the marginal likelihood of a zero-mean GP with ``kernel(X1, X2, log_l, log_s2)``.
 
     X: (m, n) positions, Y: (m, d) targets: d = n gradient components (``gradient_targets``, the
     curl-free kernel) or d = 1 values (the RBF kernel); rows of the (m d, m d) kernel are ordered
     (point, output).
-    Parameters: log lengthscales (n), log signal variance, log noise variance per output column;
+    Parameters: log lengthscales (n), log signal variance, log noise variance per output column
+    (started at ``noise_init`` times each column's mean square);
     lengthscales start at ``lengthscale_init`` times the inputs' standard deviations and are
     bounded above by ``max_lengthscale`` (None, scalar or (n,), input units) when given.
     The noise is floored at ``noise_floor_rel`` times the mean square target (at least 1e-6 of
@@ -276,7 +286,7 @@ def fit_potential_hyper(X, Y, kernel, *, gradient_targets: bool, max_iter: int =
         K = kernel(X_t, X_t, theta[:n], theta[n])
         return (K + torch.diag((floor + torch.exp(theta[n + 1:]))[noise_cols])).unsqueeze(0)
 
-    theta0 = torch.cat([torch.log(lengthscale_init * sd), torch.log(s2_0).reshape(1), torch.log(1e-3 * ms)]).numpy()
+    theta0 = torch.cat([torch.log(lengthscale_init * sd), torch.log(s2_0).reshape(1), torch.log(noise_init * ms)]).numpy()
     bounds = None
     if max_lengthscale is not None:
         cap = np.log(np.broadcast_to(np.asarray(max_lengthscale, dtype=np.float64), (n,)))
