@@ -4,7 +4,8 @@ The compensator is either a file exported by ``mmgp export`` / ``compensator_fro
 the real-Panda export written by ``bench_compensator_safety.py``), or, by default, a stand-in built
 here: the Panda's rigid-body prior plus a Wendland deviation on 1,000 support poses of a smooth
 random trajectory within the joint limits, with random weights (the latency does not depend on
-their values) and support radii ``--radius`` times the trajectory's span per joint.
+their values) and support radii ``--radius`` times the trajectory's span per joint, shrunk to the
+export's neighbour budget (100 on average).
 
 Timed in the same run, per call, in CPU time of the calling thread (the machine these benchmarks
 run on is shared, and wall time counts the other processes' turns), best of 5 rounds over 256
@@ -38,6 +39,7 @@ import numpy as np
 
 from mmgp.compensator import Compensator, load_compensator
 from mmgp.compensator.prior import prior_from_robot
+from mmgp.gp.gradient_field import neighbour_limited_scale
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 
@@ -78,8 +80,9 @@ def stand_in(radius: float, n: int, seed: int) -> Compensator:
     t = np.linspace(0, 60, n)[:, None]
     w, ph = rng.uniform(0.05, 0.25, (3, 7)) * 2 * np.pi, rng.uniform(0, 2 * np.pi, (3, 7))
     Z = 0.5 * (lo + hi) + 0.35 * (hi - lo) * np.sin(w[None] * t[:, :, None] + ph[None]).mean(1)
-    span = Z.max(0) - Z.min(0)
-    return Compensator("curl-free-wendland", Z, rng.normal(size=Z.shape) * 0.1, radius * span, 0.05,
+    radii = radius * (Z.max(0) - Z.min(0))
+    radii *= neighbour_limited_scale(Z / radii, 100)  # the export's default neighbour budget
+    return Compensator("curl-free-wendland", Z, rng.normal(size=Z.shape) * 0.1, radii, 0.05,
                        joint_names=PANDA_JOINTS, prior=prior_from_robot(robot, payload=(0.5, np.array([0, 0, 0.2]))))
 
 
@@ -179,7 +182,8 @@ def time_pinocchio_cpp(pm, out: Path, eigen: str | None) -> float | None:
     gxx = shutil.which("g++")
     if not eigen or gxx is None or not Path(eigen, "Eigen").is_dir():
         return None
-    prefix = Path(pinocchio.__file__).resolve().parents[4] / "cmeel.prefix"
+    # the installed package's prefix (include/, lib/): the folder "cmeel.prefix" above the module
+    prefix = next(p for p in Path(pinocchio.__file__).resolve().parents if p.name == "cmeel.prefix")
     (out / "pin.cpp").write_text(PIN_CPP % {"build": _pinocchio_model_cpp(pm)})
     exe = out / "pin_bench"
     subprocess.run([gxx, "-O2", "-std=c++17", "-DNDEBUG", "-DBOOST_MPL_CFG_NO_PREPROCESSED_HEADERS",

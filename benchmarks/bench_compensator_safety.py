@@ -120,7 +120,7 @@ def stage_models(out: Path, args) -> dict:
 BASELINE_EXPORT = """
 import sys
 from mmgp.compensator import compensator_from_model
-from mmgp.models.trained import TrainedModel
+from mmgp.model import TrainedModel  # the baseline's layout
 compensator_from_model(TrainedModel.load(sys.argv[1])).save(sys.argv[2])
 """
 
@@ -129,8 +129,10 @@ def baseline_export(model_dir: Path, path: Path) -> None:
     """The previous export (/work/baseline: zero-mean RBF potential, no prior) of the same model."""
     import os
 
-    env = {**os.environ, "PYTHONPATH": str(Path("/work/baseline"))}
-    subprocess.run([sys.executable, "-c", BASELINE_EXPORT, str(model_dir), str(path)], check=True, env=env)
+    env = {**os.environ, "PYTHONPATH": "/work/baseline"}
+    # run from the baseline folder: "python -c" puts the working folder first on sys.path
+    subprocess.run([sys.executable, "-c", BASELINE_EXPORT, str(model_dir), str(path)], check=True, env=env,
+                   cwd="/work/baseline")
 
 
 def mujoco_static_torque(name: str, Q: np.ndarray, meta: dict) -> np.ndarray:

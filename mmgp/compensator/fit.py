@@ -31,16 +31,16 @@ Choices (issue 12):
   radii are fitted by the marginal likelihood, started at 3 standard deviations of the support
   positions per joint and capped at ``max_radius_fraction`` (1) times the support's range per
   joint: the valid region reaches at most one data range beyond the data. Then all radii are
-  shrunk by one factor, if needed, until a support point has at most ``max_neighbours`` (150)
-  support points within its radius on average, which bounds the work of the C evaluation near
-  the data (``info["radius_scale"]``; real Panda, 1,000 support points, CPU time per call near the
-  data on the shared benchmark machine: 2.1 / 3.1 / 4.5 us for 64 / 100 / 150). Measured
-  trade-off (short radii revert to the prior sooner, the kernel's curvature lengthscale being
-  radius / 4.7-5.6): on the real Panda, radii of 0.54 / 0.36 of the likelihood's optimum (budgets
-  150 / 100) left held-out trajectory poses 0.017 / 0.29 N*m off the model (at most), and raised
-  the largest deviation found near the data from 8.3 to 14 N*m (joint 4; unlimited radii, 32 % of
-  uniform poses inside the region instead of 2 %); radii capped at half the data range instead of
-  one raised the error between the passes of a sparse 2-link trajectory from 3-7 % to 35-70 %.
+  shrunk by one factor, if needed, until a support point has at most ``max_neighbours`` support
+  points within its radius on average, which bounds the work of the C evaluation near the data
+  ("auto": 700 / n, 100 for 7 joints; the work per neighbour grows with n; ``info["radius_scale"]``;
+  real Panda, 1,000 support points, CPU time per call near the
+  data on the shared benchmark machine: 3.4 / 4.8 us for budgets 100 / 150, Pinocchio's
+  computeGeneralizedGravity 0.6 us). Measured trade-off (short radii revert to the prior sooner,
+  the kernel's curvature lengthscale being radius / 4.7-5.6): on the real Panda, budget 100
+  instead of 150 left poses 0.05 rad from the data 0.10-0.26 instead of 0.04-0.12 N*m RMS off the
+  model on joints 2 and 4-7; radii capped at half the data range instead of one raised the error
+  between the passes of a sparse 2-link trajectory (no robot) from 3-7 % to 35-70 %.
 """
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ class FeedforwardSource(Protocol):
 def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000, seed: int = 0,
                            max_hyper_points: int | None = None, max_iter: int = 75, kernel: str = "wendland",
                            prior: str = "auto", payload_com_radius: float = 0.5,
-                           max_radius_fraction: float = 1.0, max_neighbours: int | None = 150,
+                           max_radius_fraction: float = 1.0, max_neighbours: int | str | None = "auto",
                            tube: float = 0.05) -> Compensator:
     """Build the passive feedforward ``tau_ff(q) = grad (V_rb + V_dev)(q)`` from a learned model.
 
@@ -106,8 +106,9 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
     Y_dev = Y - rb.torque(Q) if rb is not None else Y
     if kernel == "wendland":
         span = np.maximum(Q.max(0) - Q.min(0), 1e-3)
+        budget = max(1, round(700 / n)) if max_neighbours == "auto" else max_neighbours
         gp = CurlFreeGP(max_hyper_points, max_iter, seed=seed, profile=WendlandProfile(n), lengthscale_init=3.0,
-                        max_lengthscale=max_radius_fraction * span, max_neighbours=max_neighbours,
+                        max_lengthscale=max_radius_fraction * span, max_neighbours=budget,
                         noise_init=0.1).fit(Q, Y_dev)
         kind = "curl-free-wendland"
     elif n == 1:
