@@ -16,9 +16,9 @@ damping: a "pure stiffness", and ``K = 0``: "zero impedance"):
     at 20 Hz, quasi-static with pushes; Panda: ``mmgp.sim.simulate`` with the payload, exciting
     sum-of-sinusoids motion within +-0.6 rad of the home pose, back at rest there every 5 s, under
     computed torque on the payload-free model, pushes, sensor noise, 100 Hz), written as a contract log,
-    ``mmgp.models.trained.train`` (lever: no robot; Panda: ``load_robot(robot="panda")``, so the GP
-    learns the residual on top of the rigid-body model), ``compensator_from_model(result.model)``
-    (whose target is the library's own ``TrainedModel.nominal_torque``: GP averaged over both
+    ``mmgp.MultimodalGP`` (lever: no robot; Panda: ``load_robot(robot="panda")``, so the GP
+    learns the residual on top of the rigid-body model), ``compensator_from_model(result)``
+    (whose target is the library's own ``MultimodalGP.nominal_torque``: GP averaged over both
     friction signs, payload mean and rigid-body part included), ``.save``, ``mmgp.load_compensator``
     (numpy) in the 1 kHz loop; "learned model (before export)" is ``nominal_torque`` itself
     (static torque figures only). The export's mean is the rigid-body gravity re-identified from
@@ -63,8 +63,8 @@ import numpy as np
 
 import mmgp
 from mmgp.compensator import compensator_from_model, load_compensator
-from mmgp.config import load_config
-from mmgp.models.trained import train
+from mmgp import MultimodalGP
+from mmgp.config import load_settings
 from mmgp.physics.robot import RobotModel, load_robot
 from mmgp.sim import PANDA, PANDA_JOINTS, REPLICA, Push, actuator_replica, load_model, panda_urdf_path, replica_mjcf
 from mmgp.sim import simulate as record
@@ -153,18 +153,18 @@ def panda_recording(urdf, payload, lo, hi, n_samples, seed):
 
 def learned_compensator(name, rec, args, out_dir, max_support):
     """Write ``rec`` as a contract log, train with mmgp, export, save and load back. Returns
-    (compensator as loaded from the file, TrainResult, timings dict)."""
+    (compensator as loaded from the file, the fitted MultimodalGP, timings dict)."""
     log = out_dir / f"{name}_log.parquet"
     rec.write(log)
-    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "default.yaml",
-                      max_sweeps=args.max_sweeps, seed=args.seed)
+    cfg = load_settings(Path(__file__).resolve().parents[1] / "configs" / "default.yaml", "train", MultimodalGP,
+                        max_sweeps=args.max_sweeps, seed=args.seed)
     robot = None if name == "lever" else load_robot(robot="panda", log_path=log)
     t0 = time.perf_counter()
-    result = train([log], cfg, robot=robot)
+    result = MultimodalGP(robot=robot, **cfg).fit(log)
     t1 = time.perf_counter()
     (out_dir / f"{name}_model").mkdir(exist_ok=True)
-    result.model.save(out_dir / f"{name}_model")
-    comp = compensator_from_model(result.model, max_support=max_support, seed=args.seed)
+    result.save(out_dir / f"{name}_model")
+    comp = compensator_from_model(result, max_support=max_support, seed=args.seed)
     f = comp.save(out_dir / f"{name}_learned_compensator.npz")
     t2 = time.perf_counter()
     return mmgp.load_compensator(f), result, {"train_s": t1 - t0, "export_s": t2 - t1}
@@ -346,7 +346,7 @@ def run_plant(name, args, out_dir):
     print(f"[{name}] recording: {plant['rec_how']} ({t_rec:.1f} s)", flush=True)
 
     learned, result, t_learn = learned_compensator(name, rec, args, out_dir, n_support)
-    print(f"[{name}] trained {result.report['n_sweeps']} sweeps in {t_learn['train_s']:.1f} s, "
+    print(f"[{name}] trained {result.report_['n_sweeps']} sweeps in {t_learn['train_s']:.1f} s, "
           f"exported in {t_learn['export_s']:.1f} s", flush=True)
 
     t0 = time.perf_counter()
@@ -358,14 +358,14 @@ def run_plant(name, args, out_dir):
     print(f"[{name}] stand-in exported in {t_fit:.1f} s", flush=True)
 
     rigid = plant["rigid"]
-    torques = {"learned": learned.torque, "learned model (before export)": result.model.nominal_torque,
+    torques = {"learned": learned.torque, "learned model (before export)": result.nominal_torque,
                "stand-in": comp.torque, "rigid-body": lambda Q: np.array([rigid(q) for q in Q]).reshape(Q.shape),
                "none": np.zeros_like}
     static, blo, bhi = static_torque_errors(plant, torques, stand_in, learned, rng)
     ffs = {"none": lambda q: np.zeros(len(q)), "rigid-body": rigid, "learned": learned.torque, "stand-in": comp.torque}
     comps = {"learned": learned, "stand-in": comp}
     res = {"plant": name, "recording": plant["rec_how"], "recording_s": t_rec,
-           "n_train_samples": int(result.report["n_samples"]), "n_sweeps": int(result.report["n_sweeps"]),
+           "n_train_samples": int(result.report_["n_samples"]), "n_sweeps": int(result.report_["n_sweeps"]),
            "train_s": t_learn["train_s"], "export_s": t_learn["export_s"],
            "learned_n_support": int(learned.support.shape[0]),
            "learned_workspace_bounds": learned.bounds.tolist(),
@@ -434,7 +434,7 @@ def main():
     ap.add_argument("--plants", default="lever,panda")
     ap.add_argument("--support", type=int, default=400, help="support points of the Panda compensators")
     ap.add_argument("--panda-samples", type=int, default=2000, help="samples of the Panda training log (100 Hz)")
-    ap.add_argument("--max-sweeps", type=int, default=15, help="EM sweeps of mmgp.models.trained.train")
+    ap.add_argument("--max-sweeps", type=int, default=15, help="EM sweeps of MultimodalGP")
     ap.add_argument("--duration", type=float, default=7.0, help="s per run")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()

@@ -61,7 +61,7 @@ def test_core_imports_and_trains_with_mujoco_refused(tmp_path):
 
     log, _ = demo_files()
     config = tmp_path / "short.yaml"
-    config.write_text("max_sweeps: 2\nmin_sweeps: 1\n")
+    config.write_text("train:\n  max_sweeps: 2\n  min_sweeps: 1\n")
     out = tmp_path / "trained"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     proc = subprocess.run([sys.executable, "-c", _CHILD, str(ROOT), str(out), str(config), str(log)],

@@ -14,16 +14,15 @@ import pytest
 
 import mmgp
 from mmgp.compensator import check_passivity, compensator_from_model
-from mmgp.config import load_config
-from mmgp.models.trained import train
+from mmgp import MultimodalGP
 
 REPLICA_LOG = Path(__file__).resolve().parents[1] / "mmgp" / "resources" / "replica" / "replica_log.parquet"
 
 
 @pytest.fixture(scope="module")
 def replica(tmp_path_factory):
-    res = train([REPLICA_LOG], load_config(max_sweeps=15, seed=0))
-    comp = compensator_from_model(res.model, max_support=200, seed=0)
+    res = MultimodalGP(max_sweeps=15, seed=0).fit(REPLICA_LOG)
+    comp = compensator_from_model(res, max_support=200, seed=0)
     path = comp.save(tmp_path_factory.mktemp("exp") / "replica.npz")
     return res, mmgp.load_compensator(path)
 
@@ -31,13 +30,13 @@ def replica(tmp_path_factory):
 def test_replica_export_matches_model(replica):
     res, comp = replica
     assert comp.kind == "curl-free-wendland" and comp.prior is None  # no robot: zero mean
-    lo, hi = res.model.support_q_.min(), res.model.support_q_.max()
+    lo, hi = res.support_q_.min(), res.support_q_.max()
     q = np.linspace(lo, hi, 400)[:, None]
-    ref = res.model.nominal_torque(q)
+    ref = res.nominal_torque(q)
     # The export has to be invisible next to what the model itself can resolve: its learned noise
     # std (about 0.017 N*m here, the torque sensor's 0.02). 1% of it is far below anything a
     # controller could notice, and far above the interpolant's error (a few 1e-6 N*m).
-    noise = res.report["hyperparameters"][0]["per_joint"][0]["noise_std"]
+    noise = res.report_["hyperparameters"][0]["per_joint"][0]["noise_std"]
     assert 0.005 < noise < 0.05
     err = np.max(np.abs(comp.torque(q) - ref))
     assert err < 0.01 * noise, err
@@ -51,7 +50,7 @@ def test_replica_export_holds_the_lever_still(replica):
     from mmgp.sim import REPLICA as P
 
     res, comp = replica
-    q = np.linspace(res.model.support_q_.min(), res.model.support_q_.max(), 400)
+    q = np.linspace(res.support_q_.min(), res.support_q_.max(), 400)
     gravity = (P["load_mass"] * P["lever_length"] + P["lever_mass"] * P["lever_length"] / 2) * 9.81 * np.cos(q)
     tau = comp.torque(q[:, None])[:, 0]
     assert np.all(np.abs(tau - gravity) <= P["friction_c"] + P["friction_beta"] * np.abs(tau))
@@ -113,8 +112,8 @@ def test_two_joint_learned_export_is_passive(tmp_path):
                    q_resolution=2 * np.pi / 2 ** 14, log_dq=False, joint_names=["j1", "j2"], seed=1, settle=1.0)
     log = tmp_path / "arm.parquet"
     rec.write(log)
-    res = train([log], load_config(max_sweeps=10, seed=0))
-    comp = compensator_from_model(res.model, max_support=150, seed=0)
+    res = MultimodalGP(max_sweeps=10, seed=0).fit(log)
+    comp = compensator_from_model(res, max_support=150, seed=0)
     comp = mmgp.load_compensator(comp.save(tmp_path / "arm.json"))
     assert comp.kind == "curl-free-wendland" and comp.n_joints == 2
 

@@ -159,7 +159,7 @@ def model_prior(model: FeedforwardSource, robot, com_radius: float = 0.5, reiden
     file records the payload, the re-identified and nominal masses and the fit residuals.
     """
     from ..physics.consistent import fit_consistent_parameters, fit_point_mass
-    from ..physics.robot import point_mass_parameters
+    from ..physics.inertial import point_mass_parameters
 
     Q = np.unique(np.asarray(model.support_q_, dtype=np.float64), axis=0)
     tau = np.asarray(model.nominal_torque(Q), dtype=np.float64).reshape(Q.shape)
