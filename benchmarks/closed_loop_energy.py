@@ -160,7 +160,7 @@ def learned_compensator(name, rec, args, out_dir, max_support):
                         max_sweeps=args.max_sweeps, seed=args.seed)
     robot = None if name == "lever" else load_robot(robot="panda", log_path=log)
     t0 = time.perf_counter()
-    result = MultimodalGP(robot=robot, **cfg).fit(log)
+    result = MultimodalGP(**dict(cfg, robot=robot)).fit(log)  # the settings file names robot: null
     t1 = time.perf_counter()
     (out_dir / f"{name}_model").mkdir(exist_ok=True)
     result.save(out_dir / f"{name}_model")

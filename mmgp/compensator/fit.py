@@ -1,8 +1,8 @@
 """Building the passive feedforward compensator from a learned model.
 
 :func:`compensator_from_model` needs only the small :class:`FeedforwardSource` protocol, so any
-estimator that can give its nominal torque at rest works (the saved ``TrainedModel`` of
-:mod:`mmgp.models.trained`, the public ``MultimodalGP``, or a closed-form stand-in in tests).
+estimator that can give its nominal torque at rest works (the public ``MultimodalGP``, or a
+closed-form stand-in in tests and benchmarks).
 
 Choices (issue 12):
 
@@ -65,7 +65,7 @@ class FeedforwardSource(Protocol):
     ``nominal_torque(q)`` : q (T, n) rad -> (T, n) N*m, the model's torque at rest
         (dq = ddq = 0) in its nominal mode, rigid-body part included when it has one.
     ``joint_names_`` : optional, n joint names (default ``q_0, q_1, ...``).
-    ``robot_`` (the public estimator's fitted robot) or ``robot`` (``TrainedModel``): optional
+    ``robot_`` (the public estimator's fitted robot) or ``robot`` (a stand-in's): optional
         :class:`mmgp.physics.robot.RobotModel` (none: no rigid-body prior); see :func:`model_robot`.
     """
 
@@ -136,8 +136,8 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
 
 
 def model_robot(model):
-    """The model's rigid-body model: ``robot_`` (``MultimodalGP``, fitted) or else ``robot``
-    (``TrainedModel``), when it is a RobotModel (has ``regressor``); otherwise None (a setting such
+    """The model's rigid-body model: ``robot_`` (``MultimodalGP``, fitted) or else ``robot`` (a
+    stand-in's), when it is a RobotModel (has ``regressor``); otherwise None (a setting such
     as a robot's name is not a model)."""
     robot = getattr(model, "robot_", None)
     if robot is None:
