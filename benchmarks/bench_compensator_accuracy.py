@@ -1,17 +1,20 @@
 """What the gradient constraint costs: curl-free potential GP vs unconstrained per-joint GPs.
 
-Truth (a stand-in for a trained model's nominal torque at dq = ddq = 0): Panda gravity with a
-1.5 kg payload on the hand (Pinocchio), a joint spring on joint 2 (k = 8 N*m/rad, q0 = 0.3 rad)
-and a 0.6 N*m torque offset on joint 4. All three are conservative, as any true position-only
-torque of a robot is. Both learners get the same N random configurations (within the joint
-limits, or within +-``--half-width`` rad of a home pose) and are scored on 2,000 held-out ones:
+Truth (a stand-in for a trained model's nominal torque at dq = ddq = 0, with the nominal robot
+as its ``robot``): Panda gravity with a 1.5 kg payload on the hand (Pinocchio), a joint spring on
+joint 2 (k = 8 N*m/rad, q0 = 0.3 rad) and a 0.6 N*m torque offset on joint 4. All three are
+conservative, as any true position-only torque of a robot is. The learners get the same N random
+configurations (within the joint limits, or within +-``--half-width`` rad of a home pose) and are
+scored on 2,000 held-out ones in the same box and on 2,000 uniform in the joint limits:
 
-  * ours: ``compensator_from_model`` (curl-free RBF potential, tau = grad V exactly),
+  * ours: ``compensator_from_model`` (re-identified rigid-body prior + Wendland curl-free
+    potential on the deviation, tau = grad V exactly),
+  * ours without the prior (``prior="none"``): the Wendland potential of the whole torque,
   * peer: seven independent ARD-RBF GPs (``IndependentJointGPs``), the usual unconstrained choice,
   * reference: the nominal rigid-body model alone (no payload, spring or offset).
 
 Printed: RMSE per joint (N*m), overall normalised MSE (sum of squared errors over the sum of
-squared deviations of the truth), fit time, and ``check_passivity`` for both learners.
+squared deviations of the truth), fit time, and ``check_passivity`` for the learners.
 
     python benchmarks/bench_compensator_accuracy.py [--n 1000] [--half-width 0.6]
 """
@@ -68,7 +71,8 @@ class IndependentJointGPs:
 
 class Truth:
     def __init__(self, robot, lo, hi, n, seed):
-        self.robot = robot.add_payload("panda_hand", 1.5, [0.0, 0.0, 0.08])
+        self.robot = robot  # the nominal model, the export's prior
+        self.truth = robot.add_payload("panda_hand", 1.5, [0.0, 0.0, 0.08])
         self.lo, self.hi = lo, hi
         rng = np.random.default_rng(seed)
         self.support_q_ = lo + (hi - lo) * rng.random((n, robot.n_joints))
@@ -76,7 +80,7 @@ class Truth:
 
     def nominal_torque(self, q):
         q = np.atleast_2d(q)
-        tau = self.robot.gravity(q)
+        tau = self.truth.gravity(q)
         tau[:, 1] += 8.0 * (q[:, 1] - 0.3)
         tau[:, 3] += 0.6
         return tau
@@ -100,33 +104,38 @@ def main():
     else:
         lo, hi, region = lim_lo, lim_hi, "full joint limits"
     truth = Truth(robot, lo, hi, args.n, args.seed)
-    Qte = lo + (hi - lo) * np.random.default_rng(args.seed + 100).random((2000, 7))
-    ref = truth.nominal_torque(Qte)
+    rng = np.random.default_rng(args.seed + 100)
+    tests = {"box": lo + (hi - lo) * rng.random((2000, 7)), "limits": lim_lo + (lim_hi - lim_lo) * rng.random((2000, 7))}
 
     t0 = time.perf_counter()
     comp = compensator_from_model(truth, max_support=args.n, seed=args.seed)
     t_ours = time.perf_counter() - t0
+    comp_np = compensator_from_model(truth, max_support=args.n, seed=args.seed, prior="none")
     Ytr = truth.nominal_torque(truth.support_q_)
     t0 = time.perf_counter()
     ind = IndependentJointGPs(max_hyper_points=500, max_iter=75, seed=args.seed).fit(truth.support_q_, Ytr)
     t_ind = time.perf_counter() - t0
 
-    preds = {"ours: curl-free potential GP": comp.torque(Qte),
-             "peer: independent per-joint GPs": ind.torque(Qte),
-             "rigid-body model alone": robot.gravity(Qte)}
-    denom = np.sum((ref - ref.mean(0)) ** 2)
-    print(f"Panda, {region}, N = {args.n} training configurations, 2000 held out")
-    print(f"truth torque RMS per joint (N*m): {np.array2string(np.sqrt(np.mean(ref ** 2, 0)), precision=3)}")
-    print(f"{'predictor':34s} {'nMSE':>9s}  RMSE per joint (N*m)")
-    for name, p in preds.items():
-        e = p - ref
-        print(f"{name:34s} {np.sum(e ** 2) / denom:9.2e}  "
-              f"{np.array2string(np.sqrt(np.mean(e ** 2, 0)), precision=4, max_line_width=200)}")
-    print(f"fit time: ours {t_ours:.1f} s (incl. bound/sampled-min), peer {t_ind:.1f} s")
-    print(f"ours: lengthscales {np.array2string(np.asarray(comp.info['lengthscales']), precision=3)}, "
-          f"rigorous |V| bound {comp.potential_bound:.1f} J (triangle bound "
-          f"{comp.bound_info['triangle_bound']:.3g} J), sampled storage min over the box {comp.storage_sampled_min:.1f} J")
-    for name, obj in (("ours", comp), ("peer", ind)):
+    preds = {"ours: prior + Wendland potential": comp.torque, "ours without the prior": comp_np.torque,
+             "peer: independent per-joint GPs": ind.torque, "rigid-body model alone": robot.gravity}
+    print(f"Panda, trained on {region}, N = {args.n} configurations; tested on 2000 held-out in that box "
+          f"and 2000 uniform in the joint limits")
+    for where, Qte in tests.items():
+        ref = truth.nominal_torque(Qte)
+        denom = np.sum((ref - ref.mean(0)) ** 2)
+        print(f"[{where}] truth torque RMS per joint (N*m): {np.array2string(np.sqrt(np.mean(ref ** 2, 0)), precision=3)}")
+        print(f"{'predictor':34s} {'nMSE':>9s}  RMSE per joint (N*m)")
+        for name, p in preds.items():
+            e = p(Qte) - ref
+            print(f"{name:34s} {np.sum(e ** 2) / denom:9.2e}  "
+                  f"{np.array2string(np.sqrt(np.mean(e ** 2, 0)), precision=4, max_line_width=200)}")
+    print(f"fit time: ours {t_ours:.1f} s (incl. bounds, sampled minimum and maximum), peer {t_ind:.1f} s")
+    idf = comp.prior.identification
+    print(f"ours: payload {idf['payload']['mass']:.3f} kg, radii {np.array2string(comp.lengthscales, precision=3)}, "
+          f"rigorous |V| bound {comp.potential_bound:.1f} J, deviation bound (rigorous) "
+          f"{np.array2string(comp.deviation_torque_bound, precision=2)} N*m, (sampled) "
+          f"{np.array2string(comp.deviation_sampled_max, precision=2)} N*m")
+    for name, obj in (("ours", comp), ("ours without the prior", comp_np), ("peer", ind)):
         r = check_passivity(obj, n_configs=100, n_loops=30, bounds=np.stack([lo, hi]))
         print(f"check_passivity {name}: passed={r['passed']} loop work/(torque*length)={r['loop_max_rel_work']:.2e} "
               f"max |loop work|={r['loop_max_abs_work']:.2e} J grad err={r['grad_max_rel_err']:.2e}")

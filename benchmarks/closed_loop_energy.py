@@ -21,10 +21,12 @@ damping: a "pure stiffness", and ``K = 0``: "zero impedance"):
     (whose target is the library's own ``MultimodalGP.nominal_torque``: GP averaged over both
     friction signs, payload mean and rigid-body part included), ``.save``, ``mmgp.load_compensator``
     (numpy) in the 1 kHz loop; "learned model (before export)" is ``nominal_torque`` itself
-    (static torque figures only),
+    (static torque figures only). The export's mean is the rigid-body gravity re-identified from
+    the model (Panda: payload, then every body; lever: no robot, zero mean) and its learned
+    deviation is compactly supported, so beyond its valid region it is exactly that prior,
   * ``stand-in``: the same export applied to the plant's exact static torque (MuJoCo
-    ``qfrc_bias`` at rest, including the payload) on random configurations: what the export does
-    to a perfect model.
+    ``qfrc_bias`` at rest, including the payload; Panda: with the nominal robot as its ``robot``)
+    on random configurations: what the export does to a perfect model.
 
 Rubber-mallet test: 20 ms sin^2 force pulses at fixed times, in pairs: a hit, then an opposite hit
 shortly after that catches the rebound and takes energy out (lever: 40 N then 30 N at the load,
@@ -39,9 +41,12 @@ displacement). With the feedforward ``tau_ff = grad V``, the closed loop has sto
 sampled minimum over the joint limits for the Panda (MuJoCo's own potential-energy figure).
 
 Figures: static torque error against the plant's exact static torque, RMS and static tracking
-error (before the first hit) per variant, the time the pose holds (|q - q_d| <= 0.05 rad), min E_in
-vs -beta_0, max (H - H0) - E_in (re-checked at a 4x finer step where it exceeds 1 mJ). Plots (PNG),
-the recordings, the exported compensators and results.json go to ``--out``.
+error (before the first hit) per variant, the time the pose holds (|q - q_d| <= 0.05 rad), the
+share of the run inside the workspace (Panda: its joint limits; lever: the [-1, 1.6] rad range of
+the training box) and, for the exports, inside their valid region, the largest joint excursion,
+min E_in (energy into the plant through the port; >= 0 when the loop is passive around a minimum of
+its storage) vs -beta_0, max (H - H0) - E_in (re-checked at a 4x finer step where it exceeds
+1 mJ). Plots (PNG), the recordings, the exported compensators and results.json go to ``--out``.
 
     python benchmarks/closed_loop_energy.py --out /tmp/cle [--plants lever,panda] [--support 400]
         [--panda-samples 2000] [--max-sweeps 15]
@@ -77,10 +82,12 @@ def _enable_energy(model):
 class StaticTorqueModel:
     """Stand-in for a trained model: the plant's own static torque (MuJoCo gravity at rest).
 
-    ``nominal_torque(q (T, n)) -> (T, n)`` N*m; ``support_q_`` uniform in ``[lo, hi]``."""
+    ``nominal_torque(q (T, n)) -> (T, n)`` N*m; ``support_q_`` uniform in ``[lo, hi]``; ``robot`` the
+    nominal RobotModel (the export's prior, payload identified from this torque) or None."""
 
-    def __init__(self, mj_model, lo, hi, n, names, seed=0):
+    def __init__(self, mj_model, lo, hi, n, names, seed=0, robot=None):
         self.m = mj_model
+        self.robot = robot
         self.d = mujoco.MjData(mj_model)
         rng = np.random.default_rng(seed)
         self.support_q_ = lo + (hi - lo) * rng.random((n, len(lo)))
@@ -153,7 +160,7 @@ def learned_compensator(name, rec, args, out_dir, max_support):
                         max_sweeps=args.max_sweeps, seed=args.seed)
     robot = None if name == "lever" else load_robot(robot="panda", log_path=log)
     t0 = time.perf_counter()
-    result = MultimodalGP(robot=robot, **cfg).fit(log)
+    result = MultimodalGP(**dict(cfg, robot=robot)).fit(log)  # the settings file names robot: null
     t1 = time.perf_counter()
     (out_dir / f"{name}_model").mkdir(exist_ok=True)
     result.save(out_dir / f"{name}_model")
@@ -228,6 +235,7 @@ def lever_plant(args, rng) -> dict:
         "hits": _hits(model, "load", [(0, 0, 40.0), (0, 0, -30.0), (0, 0, -40.0), (0, 0, 30.0)],
                       [1.0, 1.12, 4.0, 4.12], "body"),
         "p_min": -m_eff_true * G,  # exact: lowest point of the lever's centre of mass (q = -pi/2)
+        "robot": None, "limits": (np.array([-1.0]), np.array([1.6])),
         "p_min_how": "exact", "n_support": min(args.support, 200), "rec": rec,
         "rec_how": f"actuator_replica(seed={args.seed}): {len(rec.t)} samples at 20 Hz",
     }
@@ -257,7 +265,7 @@ def panda_plant(args, rng) -> dict:
         "model": model, "nofric": load_model(urdf, PANDA_JOINTS, payload=payload),
         "lo": lo, "hi": hi, "names": PANDA_JOINTS, "q_d": HOME.copy(),
         "K": np.array([150.0, 150.0, 150.0, 150.0, 40.0, 40.0, 15.0]), "rigid": lambda q: robot.gravity(q),
-        "friction": None, "hits": hits, "p_min": float(np.min(pe)),
+        "friction": None, "hits": hits, "p_min": float(np.min(pe)), "robot": robot, "limits": (lim_lo, lim_hi),
         "p_min_how": "sampled over the joint limits (20k configurations)", "n_support": args.support, "rec": rec,
         "rec_how": (f"mmgp.sim.simulate, payload 1.5 kg, damping 0.3, {len(rec.t)} samples at 100 Hz, "
                     f"{len(rec.info['pushes'])} pushes"),
@@ -316,7 +324,9 @@ def tracking_figures(plant, s, ff, duration) -> dict:
     err = s["q"] - plant["q_d"]
     pre = s["t"] < min(h.t0 for h, _ in plant["hits"])
     far = np.linalg.norm(err, axis=1) > 0.05
-    return {"rms_err_rad": float(np.sqrt(np.mean(np.sum(err ** 2, 1)))),
+    lo, hi = plant["limits"]
+    return {"inside_limits_frac": float(np.mean(np.all((s["q"] >= lo) & (s["q"] <= hi), axis=1))),
+            "max_joint_excursion_rad": float(np.max(np.abs(err))),"rms_err_rad": float(np.sqrt(np.mean(np.sum(err ** 2, 1)))),
             "static_err_rad": float(np.sqrt(np.sum(err[pre][-1] ** 2))),
             "max_err_rad": float(np.max(np.linalg.norm(err, axis=1))),
             # how long the impedance holds the pose: first time |q - q_d| exceeds 0.05 rad
@@ -340,7 +350,8 @@ def run_plant(name, args, out_dir):
           f"exported in {t_learn['export_s']:.1f} s", flush=True)
 
     t0 = time.perf_counter()
-    stand_in = StaticTorqueModel(plant["nofric"], plant["lo"], plant["hi"], n_support, plant["names"], seed=args.seed)
+    stand_in = StaticTorqueModel(plant["nofric"], plant["lo"], plant["hi"], n_support, plant["names"], seed=args.seed,
+                                 robot=plant["robot"])
     comp = compensator_from_model(stand_in, max_support=n_support, seed=args.seed)
     comp = load_compensator(comp.save(out_dir / f"{name}_standin_compensator.npz"))
     t_fit = time.perf_counter() - t0
@@ -376,6 +387,7 @@ def run_plant(name, args, out_dir):
             r = tracking_figures(plant, s, ff, args.duration)
             if ffname in comps:
                 r.update(passivity_figures(plant, s, ff, K, comps[ffname], args.duration))
+                r["inside_region_frac"] = float(np.mean(comps[ffname].region_distance(s["q"][::10]) < 1))
             res["runs"][f"{imp}/{ffname}"] = r
     _plot(name, sims, plant["q_d"], out_dir)
     return res
@@ -440,14 +452,13 @@ def main():
         print(f"  {'feedforward':32s} {'box':>9s} {'training q':>10s} {'at q_d':>9s}")
         for k in st["box"]:
             print(f"  {k:32s} {st['box'][k]:9.2e} {st['trajectory'][k]:10.2e} {st['q_d'][k]:9.2e}")
-        print(f"{'run':38s} {'static err':>10s} {'RMS err':>9s} {'max err':>9s} {'t>0.05':>6s} {'min E_in':>9s} {'-beta0':>9s} "
-              f"{'min(b0+E)':>10s} {'max dH-E':>9s}")
+        print(f"{'run':38s} {'static err':>10s} {'RMS err':>9s} {'max err':>9s} {'t>0.05':>6s} {'in lim':>6s} "
+              f"{'min E_in':>9s} {'-beta0':>9s} {'min(b0+E)':>10s} {'max dH-E':>9s}")
         for k, r in res["runs"].items():
             x = (f"{-r['beta0_J']:9.2f} {r['min_(beta0+E_in)_J']:10.3f} {r['max_(H-H0)-E_in_J']:9.1e}"
                  if "beta0_J" in r else "")
             print(f"{k:38s} {r['static_err_rad']:10.2e} {r['rms_err_rad']:9.2e} {r['max_err_rad']:9.2e} "
-                  f"{r['t_leave_0.05rad_s']:6.2f} "
-                  f"{r['E_in_min_J']:9.3f} {x}")
+                  f"{r['t_leave_0.05rad_s']:6.2f} {r['inside_limits_frac']:6.3f} {r['E_in_min_J']:9.3f} {x}")
         for k, r in res["runs"].items():
             if "beta0_J" in r:
                 print(f"{k}: E_in >= -beta0 holds: {r['passive_bound_holds']}; "

@@ -30,7 +30,7 @@ class TwoLinkGravity:
 
     g, m1, m2, l1, c1, c2 = 9.81, 2.0, 1.5, 0.6, 0.3, 0.25
 
-    def __init__(self, n_support=120, seed=0, half_width=1.5):
+    def __init__(self, n_support=400, seed=0, half_width=1.5):
         rng = np.random.default_rng(seed)
         self.support_q_ = rng.uniform(-half_width, half_width, (n_support, 2))
         self.joint_names_ = ["shoulder", "elbow"]
@@ -67,12 +67,13 @@ def arm():
 
 @pytest.fixture(scope="module")
 def comp2(arm):
-    return compensator_from_model(arm, max_support=120, seed=0)
+    return compensator_from_model(arm, max_support=400, seed=0)
 
 
 @pytest.fixture(scope="module")
 def comp1():
-    return compensator_from_model(Pendulum1(), seed=0)
+    """The Gaussian one-joint export (format version 1's erf-1dof, still built by kernel="rbf")."""
+    return compensator_from_model(Pendulum1(), seed=0, kernel="rbf")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,16 +207,21 @@ def test_curl_free_prediction_matches_brute_force():
 
 
 def test_two_link_accuracy_and_passivity(arm, comp2):
-    assert comp2.kind == "curl-free-rbf"
+    assert comp2.kind == "curl-free-wendland"
     assert comp2.joint_names == ["shoulder", "elbow"]
     rng = np.random.default_rng(7)
     Qt = rng.uniform(-1.4, 1.4, (400, 2))
     ref = arm.nominal_torque(Qt)
     err = comp2.torque(Qt) - ref
-    assert np.sqrt(np.mean(err ** 2)) < 1e-3 * np.sqrt(np.mean(ref ** 2))
+    # The support radii are capped at the data's range and by the neighbour budget (the valid
+    # region must not reach far beyond the data; the C evaluation stays sparse), so the kernel is
+    # short (its curvature lengthscale is radius / 4.7 here) and a whole gravity field without a
+    # prior needs dense data: 2.9 % here with 400 support positions (half of them the tube around
+    # the data).
+    assert np.sqrt(np.mean(err ** 2)) < 4e-2 * np.sqrt(np.mean(ref ** 2))
     # the learned potential matches the true one up to a constant
     dV = comp2.potential(Qt) - arm.potential(Qt)
-    assert np.std(dV) < 1e-3 * np.std(arm.potential(Qt))
+    assert np.std(dV) < 4e-2 * np.std(arm.potential(Qt))
     res = check_passivity(comp2, n_configs=100, n_loops=30, seed=1)
     assert res["passed"], res
     assert res["loop_max_rel_work"] < 1e-9
@@ -223,8 +229,10 @@ def test_two_link_accuracy_and_passivity(arm, comp2):
 
 
 def test_multi_joint_loop_integrals_vanish(comp2):
-    """Work of tau_ff around hand-built loops (Gauss-Legendre on each edge of a polygon)."""
-    x, w = np.polynomial.legendre.leggauss(40)
+    """Work of tau_ff around hand-built loops (Gauss-Legendre on each edge of a polygon). The
+    Wendland field is piecewise polynomial (C^4 across each support sphere), so the rule needs
+    many nodes: 200 per edge leave 2e-10 of the torque scale, 400 about 1e-12."""
+    x, w = np.polynomial.legendre.leggauss(400)
     rng = np.random.default_rng(11)
     scale = np.max(np.abs(comp2.torque(comp2.support)))
     for _ in range(10):
@@ -247,8 +255,10 @@ def test_storage_rigorous_bound(comp2):
     assert np.all(comp2.storage(Q) >= 0)
     assert comp2.storage_sampled_min >= 0
     assert B <= comp2.bound_info["triangle_bound"]
-    # far from the data the feedforward fades out (no learned torque where nothing was seen)
-    assert np.max(np.abs(comp2.torque(np.array([[40.0, -35.0]])))) < 1e-8
+    # beyond the valid region the feedforward is exactly its prior (zero here: no robot)
+    far = np.array([[40.0, -35.0], [comp2.bounds[1, 0] + 1.01 * comp2.lengthscales[0], 0.0]])
+    assert np.all(comp2.region_distance(far) > 1)
+    np.testing.assert_array_equal(comp2.torque(far), 0.0)
 
 
 def test_non_conservative_fields_fail(arm):
@@ -322,12 +332,12 @@ def test_save_load_roundtrip(comp2, comp1, tmp_path, suffix):
 def test_file_header_and_version_errors(comp2, tmp_path):
     p = comp2.save(tmp_path / "c.json")
     d = json.loads(p.read_text())
-    assert d["format"] == "mmgp-compensator" and d["version"] == 1 and d["kind"] == "curl-free-rbf"
-    d["version"] = 2
-    (tmp_path / "v2.json").write_text(json.dumps(d))
-    with pytest.raises(ValueError, match="version 2"):
-        load_compensator(tmp_path / "v2.json")
-    d["version"] = 1
+    assert d["format"] == "mmgp-compensator" and d["version"] == 2 and d["kind"] == "curl-free-wendland"
+    d["version"] = 3
+    (tmp_path / "v3.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="version 3"):
+        load_compensator(tmp_path / "v3.json")
+    d["version"] = 1  # files of version 1 (no prior) are still read
     d["weights"][0][0] *= 3.0  # tampered weights no longer match the recorded storage offset
     (tmp_path / "bad.json").write_text(json.dumps(d))
     with pytest.raises(ValueError, match="storage_offset"):
@@ -374,7 +384,7 @@ def test_evaluator_runs_with_torch_scipy_and_pinocchio_blocked(comp2, comp1, tmp
 
 
 def test_erf_matches_libm():
-    from mmgp.compensator.field import _erf
+    from mmgp.compensator.erf import erf as _erf
 
     rng = np.random.default_rng(0)
     x = np.concatenate([rng.normal(size=20000) * 3, rng.uniform(-7, 7, 20000), 10.0 ** rng.uniform(-300, 0.8, 5000),
@@ -389,7 +399,7 @@ def test_models_need_only_the_feedforward_protocol():
     assert isinstance(TwoLinkGravity(), FeedforwardSource) and isinstance(Pendulum1(), FeedforwardSource)
 
     class NoNames:  # joint_names_ is optional
-        support_q_ = np.random.default_rng(0).uniform(-1, 1, (30, 1))
+        support_q_ = np.random.default_rng(0).uniform(-1, 1, (100, 1))
 
         def nominal_torque(self, q):
             return 2.0 * np.cos(q)

@@ -2,16 +2,18 @@
 function bounded below.
 
 ``field`` (the numpy-only evaluator :class:`Compensator`, the file format, :func:`load_compensator`),
-``fit`` (:func:`compensator_from_model`), ``passivity`` (:func:`check_passivity`, storage bounds),
-``csource`` (C export). Importing this package or ``mmgp.compensator.field`` pulls in neither torch
+``prior`` (the rigid-body gravity mean :class:`RigidBodyPrior`), ``kernels`` (Wendland's compactly
+supported kernel), ``fit`` (:func:`compensator_from_model`), ``passivity`` (:func:`check_passivity`,
+storage bounds), ``csource`` (C export). Importing this package or ``mmgp.compensator.field`` pulls in neither torch
 nor scipy; ``compensator_from_model`` (torch) is imported on first use.
 """
 from __future__ import annotations
 
 from .field import Compensator, load_compensator
 from .passivity import check_passivity
+from .prior import RigidBodyPrior
 
-__all__ = ["Compensator", "load_compensator", "check_passivity", "compensator_from_model"]
+__all__ = ["Compensator", "RigidBodyPrior", "load_compensator", "check_passivity", "compensator_from_model"]
 
 
 def __getattr__(name):

@@ -1,12 +1,21 @@
 """C99 source generation for an exported compensator (math.h only, no allocation, no globals written).
 
 The generated functions evaluate exactly the formulas of :class:`mmgp.compensator.Compensator`
-from the same precomputed constants (support in lengthscale units, ``gamma = weights / l``,
-printed with 17 significant digits so every double round-trips), so the C and numpy evaluators
-agree to rounding. Cost per call: one ``exp`` and about ``6 n`` flops per support point.
+from the same precomputed constants (support in lengthscale units, ``gamma = weights / l``, the
+prior's placements and first moments, Wendland's polynomial coefficients), printed with 17
+significant digits so every double round-trips; the C and numpy evaluators agree to rounding.
+
+Cost per call. Prior: one forward pass over the joints (a 3x3 product, a Rodrigues rotation, one
+sin/cos per joint) and one backward pass. Deviation, ``curl-free-wendland``: the support points are
+stored in the leaf order of a k-d tree (:func:`kd_tree`, boxes in the scaled coordinates); a query
+descends only into boxes closer than 1 to it, since every point in the others has ``r >= 1`` and
+contributes exactly zero (nothing is truncated); each visited point costs about ``2 n`` flops, and
+those with ``r < 1`` a square root and two short polynomials more. The Gaussian kinds visit every
+support point (one ``exp`` each).
 """
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -22,12 +31,17 @@ def _ident(stem: str) -> str:
     return s
 
 
-def _arr(name: str, a, per_line: int = 4) -> str:
-    a = np.asarray(a, dtype=np.float64).ravel()
-    items = [repr(float(x)) if np.isfinite(x) else "0.0" for x in a]
-    items = [x if ("." in x or "e" in x) else x + ".0" for x in items]
+def _num(x) -> str:
+    s = repr(float(x)) if np.isfinite(x) else "0.0"
+    return s if ("." in s or "e" in s) else s + ".0"
+
+
+def _arr(name: str, a, per_line: int = 4, ctype: str = "double", static: bool = True) -> str:
+    a = np.asarray(a).ravel()
+    items = [str(int(x)) for x in a] if ctype == "int" else [_num(x) for x in a]
     lines = [", ".join(items[i:i + per_line]) for i in range(0, len(items), per_line)]
-    return f"static const double {name}[{len(a)}] = {{\n  " + ",\n  ".join(lines) + "\n};\n"
+    return (f"{'static ' if static else ''}const {ctype} {name}[{len(a)}] = {{\n  " + ",\n  ".join(lines)
+            + "\n};\n")
 
 
 def write_c_source(comp, dir_or_prefix, name: str | None = None):
@@ -36,7 +50,10 @@ def write_c_source(comp, dir_or_prefix, name: str | None = None):
     API of the generated code (``<p>`` = C identifier made from the file stem, or ``name``)::
 
         #define <P>_N_JOINTS n
-        void   <p>_torque(const double q[n], double tau[n]);   /* N*m, q in rad */
+        #define <P>_REGION_RADIUS r                              /* 1 (Wendland) or HUGE_VAL */
+        double <p>_torque(const double q[n], double tau[n]);    /* N*m, q in rad; returns
+                                                                   min(region distance, radius) */
+        void   <p>_prior_torque(const double q[n], double tau[n]);  /* rigid-body gravity alone */
         double <p>_potential(const double q[n]);                /* J, |V| <= <P>_POTENTIAL_BOUND */
         double <p>_storage(const double q[n]);                  /* J, >= 0 */
     """
@@ -47,28 +64,30 @@ def write_c_source(comp, dir_or_prefix, name: str | None = None):
         p.mkdir(parents=True, exist_ok=True)
         p = p / "mmgp_compensator"
     ident = _ident(name or p.name)
-    n, N = comp.n_joints, comp.support.shape[0]
+    n = comp.n_joints
     c_path, h_path = p.with_name(p.name + ".c"), p.with_name(p.name + ".h")
-    names = ", ".join('"' + str(j).replace('"', "'") + '"' for j in comp.joint_names)
+    names = ", ".join('"' + str(j).replace('"', "'").replace("\\", "/") + '"' for j in comp.joint_names)
     consts = [
-        f'#include "{h_path.name}"\n#include <math.h>\n',
+        f'#include "{h_path.name}"\n#include <math.h>\n\n#define NJ {n}\n#define NS {comp.support.shape[0]}\n',
         f"const char *const {ident}_joint_names[{n}] = {{{names}}};\n",
-        f"static const double OFFSET = {float(comp.storage_offset)!r};\n",
+        _arr(f"{ident}_lengthscales", comp.lengthscales, static=False),
+        _arr(f"{ident}_deviation_torque_bound", comp.deviation_torque_bound, static=False),
+        f"static const double OFFSET = {_num(comp.storage_offset)};\n",
         _arr("INV_L", comp._inv_l),
-        _arr("ZS", comp._zs),
     ]
-    if comp.kind == "curl-free-rbf":
-        consts += [f"static const double S2 = {float(comp.signal_var)!r};\n", _arr("GAMMA", comp._gamma)]
-        body = _curl_free_body(ident, n, N)
+    consts += _prior_consts(comp.prior)
+    body = _prior_body(comp.prior)
+    if comp.kind == "curl-free-wendland":
+        consts += _wendland_consts(comp)
+        body += _wendland_body()
+    elif comp.kind == "curl-free-rbf":
+        consts += [f"static const double S2 = {_num(comp.signal_var)};\n", _arr("ZS", comp._zs),
+                   _arr("GAMMA", comp._gamma)]
+        body += _rbf_body()
     else:
-        consts += [_arr("AMP_TAU", comp._gamma), _arr("AMP_ERF", comp._erf_amp)]
-        body = _erf_body(ident, N)
-    body += f"""
-double {ident}_storage(const double *q)
-{{
-    return {ident}_potential(q) + OFFSET;
-}}
-"""
+        consts += [_arr("ZS", comp._zs), _arr("AMP_TAU", comp._gamma), _arr("AMP_ERF", comp._erf_amp)]
+        body += _erf_body()
+    body += _public_body(ident)
     atomic_write_bytes(h_path, _header(comp, ident).encode())
     atomic_write_bytes(c_path, (f"/* Generated by mmgp {__version__}; see {h_path.name}. */\n"
                                 + "".join(consts) + body).encode())
@@ -78,19 +97,42 @@ double {ident}_storage(const double *q)
 def _header(comp, ident: str) -> str:
     up = ident.upper()
     n, N = comp.n_joints, comp.support.shape[0]
+    radius = "HUGE_VAL" if not math.isfinite(comp.region_radius) else _num(comp.region_radius)
+    fmt = lambda a: "[" + ", ".join(f"{x:.4g}" for x in a) + "]"  # noqa: E731
+    if comp.prior is not None:
+        pl = (comp.prior.identification or {}).get("payload") or {}
+        prior = (f"rigid-body gravity of {n} joints, total mass {comp.prior.masses.sum():.4g} kg (all masses >= 0)"
+                 + (f", incl. a payload of {pl['mass']:.4g} kg at {fmt(pl['com'])} m in {pl.get('link')}'s frame"
+                    if "mass" in pl else ""))
+    else:
+        prior = "none (zero mean)"
+    region = ("min_a |(q - z_a) / l| < " + _num(comp.region_radius) + " over the support points z_a; outside it "
+              "tau_ff is exactly the prior" if math.isfinite(comp.region_radius)
+              else "no compact support (Gaussian kernel): the deviation fades with the distance")
+    sampled = "not computed" if comp.deviation_sampled_max is None else fmt(comp.deviation_sampled_max)
     return f"""/* Generated by mmgp {__version__}: position-only passive feedforward compensator.
  * kind: {comp.kind}; joints: {n}; support points: {N}.
  * tau_ff(q) = grad S(q); 0 <= S(q) <= 2*{up}_POTENTIAL_BOUND for every q (rigorous bounds).
+ * Mean (prior): {prior}.
+ * Valid region: {region}.
+ *   lengthscales l (rad): {fmt(comp.lengthscales)}
+ *   support box (rad): low {fmt(comp.bounds[0])}, high {fmt(comp.bounds[1])}
+ * |tau_ff(q) - tau_prior(q)| <= {ident}_deviation_torque_bound[i] for every q (N*m, rigorous):
+ *   {fmt(comp.deviation_torque_bound)}
+ *   largest deviation found by a search of the region (not a proof): {sampled}
  * C99, depends on math.h only (link with -lm). Thread-safe: no state is written.
  */
 #ifndef {up}_H_
 #define {up}_H_
 
+#include <math.h>
+
 #define {up}_N_JOINTS {n}
 #define {up}_N_SUPPORT {N}
-#define {up}_POTENTIAL_BOUND {float(comp.potential_bound)!r}
-#define {up}_STORAGE_OFFSET {float(comp.storage_offset)!r}
-#define {up}_FORMAT_VERSION 1
+#define {up}_REGION_RADIUS {radius}
+#define {up}_POTENTIAL_BOUND {_num(comp.potential_bound)}
+#define {up}_STORAGE_OFFSET {_num(comp.storage_offset)}
+#define {up}_FORMAT_VERSION 2
 
 #ifdef __cplusplus
 extern "C" {{
@@ -98,9 +140,15 @@ extern "C" {{
 
 /* joint order of q and tau */
 extern const char *const {ident}_joint_names[{n}];
+/* kernel lengthscales (rad) and the bound on |tau_ff - tau_prior| per joint (N*m) */
+extern const double {ident}_lengthscales[{n}];
+extern const double {ident}_deviation_torque_bound[{n}];
 
-/* feedforward torque (N*m) at joint position q (rad) */
-void {ident}_torque(const double *q, double *tau);
+/* feedforward torque (N*m) at joint position q (rad); returns the distance of q to the support in
+ * the kernel's metric, capped at {up}_REGION_RADIUS (= the radius: outside the valid region) */
+double {ident}_torque(const double *q, double *tau);
+/* the rigid-body gravity prior's torque alone (N*m; zeros without a prior) */
+void {ident}_prior_torque(const double *q, double *tau);
 /* potential V(q) (J), grad V = tau, |V| <= {up}_POTENTIAL_BOUND */
 double {ident}_potential(const double *q);
 /* storage S(q) = V(q) + {up}_STORAGE_OFFSET >= 0 (J) */
@@ -113,56 +161,325 @@ double {ident}_storage(const double *q);
 """
 
 
-def _curl_free_body(ident: str, n: int, N: int) -> str:
-    return f"""
-void {ident}_torque(const double *q, double *tau)
-{{
-    double qs[{n}], acc[{n}];
-    int a, i;
-    for (i = 0; i < {n}; ++i) {{ qs[i] = q[i] * INV_L[i]; acc[i] = 0.0; }}
-    for (a = 0; a < {N}; ++a) {{
-        const double *z = ZS + a * {n};
-        const double *g = GAMMA + a * {n};
-        double u[{n}], quad = 0.0, ug = 0.0, k;
-        for (i = 0; i < {n}; ++i) {{ u[i] = qs[i] - z[i]; quad += u[i] * u[i]; ug += u[i] * g[i]; }}
-        k = S2 * exp(-0.5 * quad);
-        for (i = 0; i < {n}; ++i) acc[i] += k * (g[i] - u[i] * ug);
-    }}
-    for (i = 0; i < {n}; ++i) tau[i] = acc[i] * INV_L[i];
-}}
+def _prior_consts(prior) -> list[str]:
+    if prior is None:
+        return []
+    return [_arr("PARENT", prior.parents, 8, "int"), _arr("PRISM", prior._prismatic.astype(int), 8, "int"),
+            _arr("AXIS", prior.axes, 3), _arr("ROT", prior.rotations, 3), _arr("TRANS", prior.translations, 3),
+            _arr("MASS", prior.masses), _arr("MCOM", prior._h, 3), _arr("MSUB", prior._subtree_mass),
+            _arr("GRAV", prior.gravity, 3)]
 
-double {ident}_potential(const double *q)
-{{
-    double qs[{n}], v = 0.0;
-    int a, i;
-    for (i = 0; i < {n}; ++i) qs[i] = q[i] * INV_L[i];
-    for (a = 0; a < {N}; ++a) {{
-        const double *z = ZS + a * {n};
-        const double *g = GAMMA + a * {n};
-        double quad = 0.0, ug = 0.0, u;
-        for (i = 0; i < {n}; ++i) {{ u = qs[i] - z[i]; quad += u * u; ug += u * g[i]; }}
-        v += S2 * exp(-0.5 * quad) * ug;
-    }}
-    return v;
-}}
+
+_NO_PRIOR_C = """
+static void prior_eval(const double *q, double *tau, double *v)
+{
+    int j;
+    (void)q;
+    if (tau) for (j = 0; j < NJ; ++j) tau[j] = 0.0;
+    if (v) *v = 0.0;
+}
+"""
+
+_PRIOR_C = """
+static void mat_mul(const double *A, const double *B, double *C)
+{
+    int r, c;
+    for (r = 0; r < 3; ++r)
+        for (c = 0; c < 3; ++c) C[3 * r + c] = A[3 * r] * B[c] + A[3 * r + 1] * B[3 + c] + A[3 * r + 2] * B[6 + c];
+}
+
+static void mat_vec(const double *A, const double *x, double *y)
+{
+    int r;
+    for (r = 0; r < 3; ++r) y[r] = A[3 * r] * x[0] + A[3 * r + 1] * x[1] + A[3 * r + 2] * x[2];
+}
+
+/* forward kinematics: joint origins P, world axes A, body first moments H = m c (world) */
+static void prior_forward(const double *q, double (*P)[3], double (*A)[3], double (*H)[3])
+{
+    static const double EYE[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1}, ZERO[3] = {0, 0, 0};
+    double R[NJ][9], R0[9], Rq[9], t[3];
+    int j, i;
+    for (j = 0; j < NJ; ++j) {
+        const double *Rp = PARENT[j] < 0 ? EYE : R[PARENT[j]], *pp = PARENT[j] < 0 ? ZERO : P[PARENT[j]];
+        const double *a = AXIS + 3 * j;
+        mat_mul(Rp, ROT + 9 * j, R0);
+        mat_vec(R0, a, A[j]);
+        mat_vec(Rp, TRANS + 3 * j, t);
+        for (i = 0; i < 3; ++i) P[j][i] = pp[i] + t[i];
+        if (PRISM[j]) {
+            for (i = 0; i < 3; ++i) P[j][i] += A[j][i] * q[j];
+            for (i = 0; i < 9; ++i) R[j][i] = R0[i];
+        } else {
+            double c = cos(q[j]), s = sin(q[j]), d = 1.0 - c;
+            Rq[0] = c + d * a[0] * a[0]; Rq[1] = -s * a[2] + d * a[0] * a[1]; Rq[2] = s * a[1] + d * a[0] * a[2];
+            Rq[3] = s * a[2] + d * a[1] * a[0]; Rq[4] = c + d * a[1] * a[1]; Rq[5] = -s * a[0] + d * a[1] * a[2];
+            Rq[6] = -s * a[1] + d * a[2] * a[0]; Rq[7] = s * a[0] + d * a[2] * a[1]; Rq[8] = c + d * a[2] * a[2];
+            mat_mul(R0, Rq, R[j]);
+        }
+        mat_vec(R[j], MCOM + 3 * j, t);
+        for (i = 0; i < 3; ++i) H[j][i] = MASS[j] * P[j][i] + t[i];
+    }
+}
+
+static void prior_eval(const double *q, double *tau, double *v)
+{
+    double P[NJ][3], A[NJ][3], H[NJ][3], w[3];
+    int j, i;
+    prior_forward(q, P, A, H);
+    if (v) {
+        double sum[3] = {0.0, 0.0, 0.0};
+        for (j = 0; j < NJ; ++j) for (i = 0; i < 3; ++i) sum[i] += H[j][i];
+        *v = -(sum[0] * GRAV[0] + sum[1] * GRAV[1] + sum[2] * GRAV[2]);
+    }
+    if (!tau) return;
+    for (j = NJ - 1; j >= 0; --j)  /* H[j] becomes the first moment of all that joint j carries */
+        if (PARENT[j] >= 0) for (i = 0; i < 3; ++i) H[PARENT[j]][i] += H[j][i];
+    for (j = 0; j < NJ; ++j) {
+        const double *a = A[j];
+        if (PRISM[j]) { tau[j] = -MSUB[j] * (a[0] * GRAV[0] + a[1] * GRAV[1] + a[2] * GRAV[2]); continue; }
+        for (i = 0; i < 3; ++i) w[i] = H[j][i] - MSUB[j] * P[j][i];
+        tau[j] = -(a[0] * (w[1] * GRAV[2] - w[2] * GRAV[1]) + a[1] * (w[2] * GRAV[0] - w[0] * GRAV[2])
+                   + a[2] * (w[0] * GRAV[1] - w[1] * GRAV[0]));
+    }
+}
 """
 
 
-def _erf_body(ident: str, N: int) -> str:
-    return f"""
-void {ident}_torque(const double *q, double *tau)
-{{
-    double qs = q[0] * INV_L[0], acc = 0.0, u;
+def _prior_body(prior) -> str:
+    return _NO_PRIOR_C if prior is None else _PRIOR_C
+
+
+def kd_tree(zs: np.ndarray, leaf_size: int = 16):
+    """A k-d tree over the points ``zs`` (N, n): returns ``(order, left, begin, end, dim, split)``.
+
+    ``order`` (N,) permutes the points into leaf order; per node, ``left`` the index of its first
+    child (the second is ``left + 1``; -1 for a leaf), ``begin``/``end`` its range in the permuted
+    points, and the splitting plane ``z[dim] = split`` (the first child's points lie on or below
+    it, the second's on or above). Nodes split at the median of their widest coordinate until at
+    most ``leaf_size`` points remain."""
+    N = zs.shape[0]
+    nodes = [{"idx": np.arange(N)}]
+    k = 0
+    while k < len(nodes):
+        idx = nodes[k]["idx"]
+        if len(idx) > leaf_size:
+            pts = zs[idx]
+            d = int(np.argmax(pts.max(0) - pts.min(0)))
+            srt = idx[np.argsort(pts[:, d], kind="stable")]
+            nodes[k]["left"] = len(nodes)
+            nodes += [{"idx": srt[:len(srt) // 2]}, {"idx": srt[len(srt) // 2:]}]
+        k += 1
+    order, begin, end = [], np.zeros(len(nodes), int), np.zeros(len(nodes), int)
+
+    def place(k):  # depth-first, so every node's points are contiguous
+        begin[k] = len(order)
+        if "left" in nodes[k]:
+            place(nodes[k]["left"])
+            place(nodes[k]["left"] + 1)
+        else:
+            order.extend(nodes[k]["idx"].tolist())
+        end[k] = len(order)
+
+    place(0)
+    left = np.array([nd.get("left", -1) for nd in nodes])
+    dim = np.zeros(len(nodes), int)
+    split = np.zeros(len(nodes))
+    for k, nd in enumerate(nodes):
+        if left[k] >= 0:  # the plane between the children: left points <= split <= right points
+            a, b = zs[nodes[left[k]]["idx"]], zs[nodes[left[k] + 1]["idx"]]
+            dim[k] = int(np.argmax(zs[nd["idx"]].max(0) - zs[nd["idx"]].min(0)))
+            split[k] = 0.5 * (a[:, dim[k]].max() + b[:, dim[k]].min())
+    return np.array(order), left, begin, end, dim, split
+
+
+LEAF = 16  # points per k-d tree leaf in the C source (padded): a fixed count lets the compiler vectorise
+
+
+def _wendland_consts(comp) -> list[str]:
+    order, left, begin, end, dim, split = kd_tree(comp._zs, LEAF)
+    leaves = np.flatnonzero(left < 0)
+    slot = np.full(len(left), -1)
+    slot[leaves] = np.arange(len(leaves))
+    # per leaf: the points (scaled), joint-major (LEAF contiguous values per joint), and their
+    # weights point-major; padding points lie far outside every ball and weigh nothing
+    n = comp.n_joints
+    zt = np.full((len(leaves), n, LEAF), 1e6)
+    zs = np.full((len(leaves), LEAF, n), 1e6)
+    gam = np.zeros((len(leaves), LEAF, n))
+    for k, nd in enumerate(leaves):
+        idx = order[begin[nd]:end[nd]]
+        zt[k, :, :len(idx)] = comp._zs[idx].T
+        zs[k, :len(idx)] = comp._zs[idx]
+        gam[k, :len(idx)] = comp._gamma[idx]
+    ea, ca = comp.profile.terms("A")
+    eb, cb = comp.profile.terms("B")
+    return [f"#define EA {ea}\n#define EB {eb}\n#define LEAF {LEAF}\n",
+            f"static const double S2 = {_num(comp.signal_var)};\n",
+            _arr("CA", ca), _arr("CB", cb), _arr("ZT", zt), _arr("ZS", zs), _arr("GAMMA", gam),
+            _arr("NODE_SPLIT", split), _arr("NODE_DIM", dim, 8, "int"), _arr("NODE_LEFT", left, 8, "int"),
+            _arr("NODE_LEAF", slot, 8, "int")]
+
+
+_WENDLAND_C = """
+static double ipow(double t, int e)
+{
+    double p = 1.0;
+    for (; e > 0; e >>= 1, t *= t)
+        if (e & 1) p *= t;
+    return p;
+}
+
+static double poly(const double *c, int len, double r)
+{
+    double p = c[len - 1];
+    int i;
+    for (i = len - 2; i >= 0; --i) p = p * r + c[i];
+    return p;
+}
+
+/* accumulation state of one deviation evaluation */
+struct dev { double qs[NJ], acc[NJ], vs, r2min; int want_tau, want_v; };
+
+static void leaf(struct dev *s, int k)
+{
+    const double *zt = ZT + k * NJ * LEAF;
+    double r2[LEAF];
+    int b, i;
+    for (b = 0; b < LEAF; ++b) r2[b] = 0.0;
+    for (i = 0; i < NJ; ++i)
+        for (b = 0; b < LEAF; ++b) { const double d = s->qs[i] - zt[i * LEAF + b]; r2[b] += d * d; }
+    for (b = 0; b < LEAF; ++b) {
+        const double *z = ZS + (k * LEAF + b) * NJ, *g = GAMMA + (k * LEAF + b) * NJ;
+        double u[NJ], ug = 0.0, r, t, tb, A, B;
+        if (r2[b] >= 1.0) continue;
+        if (r2[b] < s->r2min) s->r2min = r2[b];
+        for (i = 0; i < NJ; ++i) { u[i] = s->qs[i] - z[i]; ug += u[i] * g[i]; }
+        r = sqrt(r2[b]);
+        t = 1.0 - r;
+        tb = ipow(t, EB);
+        A = S2 * (tb * t) * poly(CA, (int)(sizeof CA / sizeof CA[0]), r);
+        if (s->want_v) s->vs += A * ug;
+        if (!s->want_tau) continue;
+        B = S2 * tb * poly(CB, (int)(sizeof CB / sizeof CB[0]), r) * ug;
+        for (i = 0; i < NJ; ++i) s->acc[i] += A * g[i] - B * u[i];
+    }
+}
+
+/* k-d tree descent: d2 is the squared distance from q to the node's cell (off[d]: its part along
+ * coordinate d); a cell at least 1 away holds points with r >= 1 only, which contribute exactly 0 */
+static void descend(struct dev *s, int nd, double d2, double *off)
+{
+    int d, first;
+    double diff, old, far2;
+    if (NODE_LEFT[nd] < 0) { leaf(s, NODE_LEAF[nd]); return; }
+    d = NODE_DIM[nd];
+    diff = s->qs[d] - NODE_SPLIT[nd];
+    first = NODE_LEFT[nd] + (diff > 0.0);
+    descend(s, first, d2, off);
+    old = off[d];
+    far2 = d2 - old * old + diff * diff;
+    if (far2 >= 1.0) return;
+    off[d] = diff;
+    descend(s, NODE_LEFT[nd] + (diff <= 0.0), far2, off);
+    off[d] = old;
+}
+
+/* the deviation: tau (N*m) and/or V (J); returns the squared distance to the support, capped at 1 */
+static double deviation(const double *q, double *tau, double *v)
+{
+    struct dev s;
+    double off[NJ];
+    int i;
+    for (i = 0; i < NJ; ++i) { s.qs[i] = q[i] * INV_L[i]; s.acc[i] = 0.0; off[i] = 0.0; }
+    s.vs = 0.0;
+    s.r2min = 1.0;
+    s.want_tau = tau != 0;
+    s.want_v = v != 0;
+    descend(&s, 0, 0.0, off);
+    if (tau) for (i = 0; i < NJ; ++i) tau[i] = s.acc[i] * INV_L[i];
+    if (v) *v = s.vs;
+    return s.r2min;
+}
+"""
+
+
+def _wendland_body() -> str:
+    return _WENDLAND_C
+
+
+
+def _rbf_body() -> str:
+    return """
+static double deviation(const double *q, double *tau, double *v)
+{
+    double qs[NJ], acc[NJ], u[NJ], vs = 0.0, r2min = HUGE_VAL;
+    int a, i;
+    for (i = 0; i < NJ; ++i) { qs[i] = q[i] * INV_L[i]; acc[i] = 0.0; }
+    for (a = 0; a < NS; ++a) {
+        const double *z = ZS + a * NJ, *g = GAMMA + a * NJ;
+        double r2 = 0.0, ug = 0.0, k;
+        for (i = 0; i < NJ; ++i) { u[i] = qs[i] - z[i]; r2 += u[i] * u[i]; ug += u[i] * g[i]; }
+        if (r2 < r2min) r2min = r2;
+        k = S2 * exp(-0.5 * r2);
+        vs += k * ug;
+        for (i = 0; i < NJ; ++i) acc[i] += k * (g[i] - u[i] * ug);
+    }
+    if (tau) for (i = 0; i < NJ; ++i) tau[i] = acc[i] * INV_L[i];
+    if (v) *v = vs;
+    return r2min;
+}
+"""
+
+
+def _erf_body() -> str:
+    return """
+static double deviation(const double *q, double *tau, double *v)
+{
+    double qs = q[0] * INV_L[0], acc = 0.0, vs = 0.0, u, r2min = HUGE_VAL;
     int a;
-    for (a = 0; a < {N}; ++a) {{ u = qs - ZS[a]; acc += AMP_TAU[a] * exp(-0.5 * u * u); }}
-    tau[0] = acc;
+    for (a = 0; a < NS; ++a) {
+        u = qs - ZS[a];
+        if (u * u < r2min) r2min = u * u;
+        if (tau) acc += AMP_TAU[a] * exp(-0.5 * u * u);
+        if (v) vs += AMP_ERF[a] * erf(u * 0.70710678118654752440);
+    }
+    if (tau) tau[0] = acc;
+    if (v) *v = vs;
+    return r2min;
+}
+"""
+
+
+def _public_body(ident: str) -> str:
+    up = ident.upper()
+    return f"""
+double {ident}_torque(const double *q, double *tau)
+{{
+    double prior[NJ], r2;
+    int i;
+    r2 = deviation(q, tau, 0);
+    prior_eval(q, prior, 0);
+    for (i = 0; i < NJ; ++i) tau[i] += prior[i];
+    r2 = sqrt(r2);
+    return r2 < {up}_REGION_RADIUS ? r2 : {up}_REGION_RADIUS;
+}}
+
+void {ident}_prior_torque(const double *q, double *tau)
+{{
+    prior_eval(q, tau, 0);
 }}
 
 double {ident}_potential(const double *q)
 {{
-    double qs = q[0] * INV_L[0], v = 0.0;
-    int a;
-    for (a = 0; a < {N}; ++a) v += AMP_ERF[a] * erf((qs - ZS[a]) * 0.70710678118654752440);
-    return v;
+    double vd, vp;
+    deviation(q, 0, &vd);
+    prior_eval(q, 0, &vp);
+    return vd + vp;
+}}
+
+double {ident}_storage(const double *q)
+{{
+    return {ident}_potential(q) + OFFSET;
 }}
 """

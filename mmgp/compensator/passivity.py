@@ -15,63 +15,90 @@ _EXP_M_HALF = math.exp(-0.5)
 
 
 def potential_bounds(comp) -> tuple[float, float, dict]:
-    """Rigorous (lower, upper) bounds of V on all of R^n, and how they were obtained.
+    """Rigorous (lower, upper) bounds of the deviation potential V_dev on all of R^n, and how they
+    were obtained; ``info["torque_bound"]`` (n,) bounds ``|dV_dev/dq_i|`` everywhere.
 
     Triangle bound (always valid, usually very loose because GP weights alternate in sign):
-    curl-free ``B_tri = s2 e^{-1/2} sum_a |gamma_a|``; erf-1dof ``B_tri = sum_a |A_a|``.
+    curl-free ``B_tri = s2 max_r(r A(r)) sum_a |gamma_a|``; erf-1dof ``B_tri = sum_a |A_a|``.
     Tighter bounds: :func:`_curl_free_rkhs_bound` and :func:`_erf_grid_bound`. Each bound is
-    widened by a rounding allowance (1e-12 of the sum of absolute terms).
+    widened by a rounding allowance (1e-12 of the sum of absolute terms). The prior's bounds are
+    added by the caller.
     """
-    if comp.kind == "curl-free-rbf":
-        return _curl_free_rkhs_bound(comp)
-    return _erf_grid_bound(comp)
+    if comp.kind == "erf-1dof":
+        return _erf_grid_bound(comp)
+    lo, hi, info = _curl_free_rkhs_bound(comp)
+    if comp.n_joints == 1:  # one joint: a grid with the RKHS torque bound as Lipschitz constant is tight
+        compact = math.isfinite(comp.region_radius)
+        reach = comp.lengthscales[0] * (comp.region_radius if compact else 12.0)
+        # beyond 12 l a Gaussian term is below s2 |gamma| 12 e^-72 < 1e-30 of the triangle bound
+        g_lo, g_hi, h = _grid_bound(comp, info["torque_bound"][0], reach, 0.0 if compact else 1e-30 * info["triangle_bound"],
+                                    info["triangle_bound"])
+        lo, hi = max(lo, g_lo), min(hi, g_hi)
+        info.update(method="grid+rkhs-lipschitz", grid_step=h)
+    return lo, hi, info
+
+
+def _max_r_a(profile) -> float:
+    """max_r r A(r): e^{-1/2} for the RBF; for a Wendland profile a grid of 10^5 points on [0, 1]
+    widened by 1e-3 (r A(r) is a polynomial of bounded slope there)."""
+    if profile is None:
+        return _EXP_M_HALF
+    r = np.linspace(0.0, 1.0, 100_001)
+    return float(np.max(r * profile.A(r))) * 1.001
 
 
 def _curl_free_rkhs_bound(comp) -> tuple[float, float, dict]:
     """V = sum_ai alpha_ai d k(., z_a)/dz_i lies in the RKHS of k with ``|V|_H^2 = alpha^T K_dd alpha``,
-    and ``|V(q)| = |<V, k(., q)>| <= |V|_H sqrt(s2)``.
+    so ``|V(q)| = |<V, k(., q)>| <= |V|_H sqrt(s2)`` and ``|dV/dq_i| <= |V|_H sqrt(s2 A(0)) / l_i``.
 
     The quadratic form needs only (N, N) matrices: with ``P = zs gamma^T``, ``d_a = zs_a.gamma_a``,
-    ``alpha^T K alpha = sum_ab k_ab (gamma_a.gamma_b - (d_a - P_ba)(P_ab - d_b))``.
+    ``alpha^T K alpha = sum_ab s2 (A_ab gamma_a.gamma_b - B_ab (d_a - P_ba)(P_ab - d_b))``.
     """
     N = comp.support.shape[0]
     G, zs, s2 = comp._gamma, comp._zs, comp.signal_var
-    tri = float(s2 * _EXP_M_HALF * np.sum(np.sqrt(np.sum(G * G, axis=1))))
+    tri = float(s2 * _max_r_a(comp.profile) * np.sum(np.sqrt(np.sum(G * G, axis=1))))
     if N * N * comp.n_joints <= 2e7:
         D = zs[:, None, :] - zs[None, :, :]
-        k = s2 * np.exp(-0.5 * np.sum(D * D, axis=2))
+        r2 = np.sum(D * D, axis=2)
     else:
         sq = np.sum(zs ** 2, axis=1)
-        k = s2 * np.exp(-0.5 * np.maximum(sq[:, None] + sq[None] - 2 * zs @ zs.T, 0))
+        r2 = np.maximum(sq[:, None] + sq[None] - 2 * zs @ zs.T, 0)
+    a, b = comp._radial(r2)
     P = zs @ G.T
     d = np.sum(zs * G, axis=1)
-    terms = k * (G @ G.T - (d[:, None] - P.T) * (P - d[None, :]))
-    qf = float(np.sum(terms)) + 1e-12 * float(np.sum(np.abs(terms)))
-    rkhs = math.sqrt(s2 * max(qf, 0.0))
+    terms = a * (G @ G.T) - b * ((d[:, None] - P.T) * (P - d[None, :]))
+    qf = max(float(np.sum(terms)) + 1e-12 * float(np.sum(np.abs(terms))), 0.0)
+    rkhs = math.sqrt(s2 * qf)
     B = min(tri, rkhs) * (1 + 1e-12) + 1e-12 * tri
-    return -B, B, {"method": "rkhs" if rkhs < tri else "triangle", "triangle_bound": tri, "rkhs_bound": rkhs}
+    a0 = 1.0 if comp.profile is None else comp.profile.a0
+    torque = (math.sqrt(qf * s2 * a0) * (1 + 1e-12)) * comp._inv_l
+    return -B, B, {"method": "rkhs" if rkhs < tri else "triangle", "triangle_bound": tri, "rkhs_bound": rkhs,
+                   "rkhs_norm": math.sqrt(qf), "torque_bound": torque.tolist()}
 
 
 def _erf_grid_bound(comp) -> tuple[float, float, dict]:
-    """|tau| <= T = sqrt(s2 w^T K w) (the RKHS argument for tau), so on a grid of spacing h covering
-    the support +- 12 l, ``V >= min_grid V - T h / 2`` between nodes; beyond the grid
-    ``|V(q) - V(end)| <= sum_a |A_a| erfc(12/sqrt 2)``, negligible."""
+    """erf-1dof: ``|tau| <= T = sqrt(s2 w^T K w)`` (the RKHS argument for tau), then
+    :func:`_grid_bound` over the support +- 12 l; beyond it ``|V(q) - V(end)| <= sum_a |A_a|
+    erfc(12/sqrt 2)``, negligible."""
     tri = float(np.sum(np.abs(comp._erf_amp)))
     l = comp.lengthscales[0]
-    z = comp.support[:, 0]
     w = comp.weights[:, 0]
-    U = (z[:, None] - z[None, :]) / l
-    wKw = float(w @ (comp.signal_var * np.exp(-0.5 * U * U)) @ w)
-    T = math.sqrt(comp.signal_var * max(wKw, 0.0))
-    span = float(z.max() - z.min()) + 24 * l
-    h = max(l / 200.0, span / 20000.0)  # cap the grid; a coarser step only widens the slack
-    grid = np.arange(z.min() - 12 * l, z.max() + 12 * l + h, h)
-    V = comp.potential(grid[:, None])
-    tail = tri * math.erfc(12 / math.sqrt(2))
+    U = (comp.support[:, 0][:, None] - comp.support[:, 0][None, :]) / l
+    T = math.sqrt(comp.signal_var * max(float(w @ (comp.signal_var * np.exp(-0.5 * U * U)) @ w), 0.0))
+    lo, hi, h = _grid_bound(comp, T, 12 * l, tri * math.erfc(12 / math.sqrt(2)), tri)
+    return lo, hi, {"method": "grid+rkhs-lipschitz", "triangle_bound": tri, "torque_bound": [T], "grid_step": h}
+
+
+def _grid_bound(comp, T: float, reach: float, tail: float, tri: float) -> tuple[float, float, float]:
+    """One joint: V_dev on a grid of spacing h covering the support +- ``reach``, widened by the
+    Lipschitz slack ``T h / 2`` (``|dV/dq| <= T``), the ``tail`` beyond the grid and rounding.
+    Returns (lower, upper, h)."""
+    z = comp.support[:, 0]
+    h = max(reach / 2400.0, (float(z.max() - z.min()) + 2 * reach) / 20000.0)  # a coarser step only widens the slack
+    grid = np.arange(z.min() - reach, z.max() + reach + h, h)
+    _, V, _ = comp._eval(grid[:, None], False, True, with_prior=False)
     slack = T * h / 2 + tail + 1e-12 * tri
-    lo, hi = float(V.min()) - slack, float(V.max()) + slack
-    lo, hi = max(lo, -tri), min(hi, tri)
-    return lo, hi, {"method": "grid+rkhs-lipschitz", "triangle_bound": tri, "torque_bound": T, "grid_step": float(h)}
+    return max(float(V.min()) - slack, -tri), min(float(V.max()) + slack, tri), float(h)
 
 
 def storage_sampled_min(comp, seed: int = 0, n_samples: int = 20000) -> tuple[float, np.ndarray]:
@@ -93,6 +120,33 @@ def storage_sampled_min(comp, seed: int = 0, n_samples: int = 20000) -> tuple[fl
     return s_min, q_min
 
 
+def deviation_sampled_max(comp, seed: int = 0, n_samples: int = 20000, n_polish: int = 2) -> np.ndarray:
+    """Largest ``|tau_ff - tau_prior|`` per joint (n,) N*m found where the deviation can be non-zero.
+
+    Candidates: the support points and ``n_samples`` points drawn uniformly in the balls of radius
+    ``region_radius`` (3 for a Gaussian kernel) around random support points, in the kernel's
+    metric; then a bounded L-BFGS-B polish (finite-difference gradient) of each joint's
+    ``|tau_dev,i|`` from its ``n_polish`` best candidates. A search, not a proof: the rigorous
+    bound is ``comp.deviation_torque_bound``."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(seed)
+    n = comp.n_joints
+    radius = comp.region_radius if math.isfinite(comp.region_radius) else 3.0
+    centre = comp.support[rng.integers(comp.support.shape[0], size=n_samples)]
+    u = rng.normal(size=(n_samples, n))
+    u *= (radius * rng.random(n_samples) ** (1.0 / n) / np.linalg.norm(u, axis=1))[:, None]
+    cand = np.concatenate([comp.support, centre + u * comp.lengthscales])
+    dev = np.abs(comp.deviation_torque(cand))
+    best = dev.max(axis=0)
+    for i in range(n):
+        for k in np.argsort(dev[:, i])[-n_polish:]:
+            r = minimize(lambda x: -abs(float(comp.deviation_torque(x)[i])), cand[k], method="L-BFGS-B",
+                         options={"maxiter": 50})
+            best[i] = max(best[i], -float(r.fun))
+    return best
+
+
 def check_passivity(comp, n_configs: int = 200, n_loops: int = 50, bounds=None, seed: int = 0, *,
                     n_quad: int = 512, grad_rtol: float = 1e-6, loop_rtol: float = 1e-9,
                     n_storage_samples: int = 20000) -> dict:
@@ -110,9 +164,12 @@ def check_passivity(comp, n_configs: int = 200, n_loops: int = 50, bounds=None, 
        Figure: max |W| / (torque scale * loop length); pass below ``loop_rtol``.
     3. Lower bound: ``storage`` at ``n_storage_samples`` points in the box and in a box 5x wider;
        pass if the minimum is finite and not below ``comp.storage_lower_bound`` (when present).
+    4. Prior: when ``comp`` has a rigid-body ``prior``, it must be physically consistent
+       (``prior_problems`` lists what is not; a :class:`~mmgp.compensator.Compensator` cannot be
+       built with such a prior, so this catches objects assembled otherwise).
 
     ``bounds``: (2, n) box; default ``comp.bounds`` if present, else [-pi, pi]^n.
-    Returns a dict of worst figures and ``passed`` (all three).
+    Returns a dict of worst figures and ``passed`` (all four).
     """
     rng = np.random.default_rng(seed)
     if bounds is None:
@@ -136,7 +193,11 @@ def check_passivity(comp, n_configs: int = 200, n_loops: int = 50, bounds=None, 
         "storage_lower_bound": None if lb is None else float(lb),
         "storage_bounded_pass": bounded,
     }
-    res["passed"] = bool(res["grad_pass"] and res["loop_pass"] and res["storage_bounded_pass"])
+    prior = getattr(comp, "prior", None)
+    res["prior_problems"] = [] if prior is None else list(prior.consistency_problems())
+    res["prior_consistent_pass"] = not res["prior_problems"]
+    res["passed"] = bool(res["grad_pass"] and res["loop_pass"] and res["storage_bounded_pass"]
+                         and res["prior_consistent_pass"])
     return res
 
 
