@@ -301,8 +301,16 @@ def test_sparse_gp_matches_dense_sgpr_formulas_and_dtc_loo_refits():
         assert lsd[i] == pytest.approx(np.sqrt(C[i, i] - C[r, i] @ w) * sc, rel=1e-7)
 
 
-def test_make_gp_switches_at_threshold_and_sparse_fit_is_accurate():
+def test_make_gp_switches_at_threshold_and_sparse_fit_is_accurate(monkeypatch):
+    import mmgp.gp.linalg as linalg
+
+    # The exact GP needs one output's kernel, factor and workspace (3 x 8 N^2 bytes) within a third
+    # of the available RAM: 6.1 GB at the threshold. Pin the RAM so the rule, not the machine, decides.
+    monkeypatch.setattr(linalg, "_available_ram", lambda: 3 * 3 * 8.0 * EXACT_MAX_SAMPLES ** 2 + 1.0)
     assert type(make_gp(EXACT_MAX_SAMPLES, n_inducing=50)) is ExactGP
+    monkeypatch.setattr(linalg, "_available_ram", lambda: 3 * 3 * 8.0 * EXACT_MAX_SAMPLES ** 2 * 0.9)
+    assert type(make_gp(EXACT_MAX_SAMPLES, n_inducing=50)) is SparseGP
+    monkeypatch.undo()
     assert type(make_gp(EXACT_MAX_SAMPLES + 1, n_inducing=50)) is SparseGP
     assert type(make_gp(500, exact_threshold=100)) is SparseGP
     X, Y = toy(N=600, noise=0.05)
