@@ -58,6 +58,7 @@ from typing import Sequence
 import numpy as np
 
 from .passivity import potential_bounds
+from .validate import READ_ERRORS, validate_compensator_dict
 
 FORMAT = "mmgp-compensator"
 VERSION = 1
@@ -325,8 +326,9 @@ def load_compensator(path) -> Compensator:
                 d = json.loads(str(z["meta"]))
                 for k in ("support", "weights", "lengthscales", "workspace_bounds"):
                     d[k] = z[k]
-    except (OSError, ValueError, KeyError) as exc:
+    except READ_ERRORS as exc:
         raise ValueError(f"file {path}: not a readable {FORMAT} file ({exc})") from exc
+    validate_compensator_dict(d, path)
     if d.get("format") != FORMAT:
         raise ValueError(f"file {path}: format is {d.get('format')!r}, expected {FORMAT!r}")
     if int(d.get("version", -1)) != VERSION:

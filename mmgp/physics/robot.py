@@ -262,6 +262,16 @@ class RobotModel:
                 f"{len(one_dof)} movable joints {all_names}, and the first {n_joints} do not form one "
                 f"serial chain; give the joint names (--joint-names or metadata 'joint_names')",
                 column="joint_names")
+        # Unlogged joints are locked; that is only safe for end joints (gripper fingers): a locked
+        # joint with movable joints below it would silently freeze part of the arm the log moves.
+        rest = [j for j in one_dof if j not in first]
+        inner = [str(model.names[j]) for j in rest if any(j in _ancestors(model, k) for k in rest)]
+        if inner:
+            raise InputError(
+                f"the log has {n_joints} joint(s) but the robot model has {len(one_dof)} movable joints "
+                f"{all_names}; joints {inner} would be left out though movable joints follow them: log "
+                f"every joint of the arm, or name the logged joints (metadata 'joint_names')",
+                column=f"q_{n_joints}")
         return first
 
     @classmethod
