@@ -7,6 +7,8 @@ import contextlib
 import json
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -261,7 +263,13 @@ def test_malformed_urdf_and_invalid_yaml_are_one_line(tmp_path):
     urdf.write_text('<?xml version="1.0"?>\n<robot name="x">\n<link name="a">\n<joint name="j" type="revolute">\n')
     yml = tmp_path / "bad.yaml"
     yml.write_text("train:\n  n_modes: [2\n  seed: 1\n")
-    one_error_line(run("train", LOG, "--urdf", urdf, "--out", tmp_path / "o", "--quiet"), names=urdf)
+    # The C++ parser writes to file descriptor 2 itself, which only a separate process shows.
+    proc = subprocess.run([sys.executable, "-m", "mmgp.cli", "train", str(LOG), "--urdf", str(urdf), "--out",
+                           str(tmp_path / "o"), "--quiet"], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 2 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(urdf) in lines[0] and "Line number=4" in lines[0], proc.stderr
     line = one_error_line(run("train", LOG, "--config", yml, "--out", tmp_path / "o", "--quiet"), names=yml)
     assert "not valid YAML" in line
 
@@ -342,3 +350,16 @@ def test_read_only_out_of_train_predict_export_evaluate(base):
             if p.is_dir():
                 os.chmod(p, 0o755)
         shutil.rmtree(shared)
+
+
+def test_duplicate_parquet_column_named_by_diagnose_too(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    lg = pd.read_parquet(LOG)
+    path = tmp_path / "dup.parquet"
+    arrays = [pa.array(lg[c]) for c in ("t", "q_0", "tau_0")] + [pa.array(lg["q_0"] + 1)]
+    pq.write_table(pa.Table.from_arrays(arrays, names=["t", "q_0", "tau_0", "q_0"]), path)
+    for args in (["train", path], ["diagnose", path, "--urdf", URDF]):
+        line = one_error_line(run(*args, "--out", tmp_path / "out", "--quiet"), names=path)
+        assert "column 'q_0'" in line and "appears twice" in line and "q_1" not in line

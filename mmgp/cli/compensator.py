@@ -72,9 +72,9 @@ def export(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp t
 
 @app.command("check-passivity")
 def check_passivity_cmd(file: Path = typer.Argument(..., help="Compensator file from 'mmgp export'."),
-                        n_configs: int = typer.Option(200, "--configs", help="Random configurations at which "
+                        n_configs: int = typer.Option(200, "--configs", min=1, help="Random configurations at which "
                                                       "the gradient of the storage is checked."),
-                        n_loops: int = typer.Option(50, "--loops", help="Random closed loops around which "
+                        n_loops: int = typer.Option(50, "--loops", min=1, help="Random closed loops around which "
                                                     "the work must be zero."),
                         seed: int = seed_option(0)):
     """Numerically confirm grad S = tau_ff, zero work around closed loops, S bounded below."""
