@@ -3,7 +3,6 @@ one line naming the file and exit status 2 (1 for a failed check), no traceback,
 no failing output left behind."""
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
@@ -24,6 +23,7 @@ from mmgp.data.folds import windows_for_duration
 from mmgp.data.logs import write_log
 from mmgp.errors import InputError
 from mmgp.physics.robot import RobotModel
+from test_outputs import unprivileged  # run as a user that permissions apply to
 
 ROOT = Path(__file__).resolve().parents[1]
 REPLICA = ROOT / "mmgp/resources/replica"
@@ -307,21 +307,6 @@ def test_log_shorter_than_the_exclusion_window_flags_the_push_only():
 # ---------------------------------------------------------------------------------------------
 # Read-only --out of every writing command
 # ---------------------------------------------------------------------------------------------
-
-@contextlib.contextmanager
-def unprivileged():
-    """Run the block as a user that file permissions apply to (root ignores them)."""
-    if os.geteuid() != 0:
-        yield
-        return
-    os.setegid(65534)
-    os.seteuid(65534)
-    try:
-        yield
-    finally:
-        os.seteuid(0)
-        os.setegid(0)
-
 
 def test_read_only_out_of_train_predict_export_evaluate(base):
     shared = Path(tempfile.mkdtemp(prefix="mmgp-ro-test-"))
