@@ -290,18 +290,18 @@ def test_windows_capped_at_their_fraction_of_the_log():
 
 
 def test_log_shorter_than_the_exclusion_window_flags_the_push_only():
-    # 0.06 s at 10 kHz, a lever swinging through a sine torque, pushed on rows 240..275: the 1 s
+    # 0.04 s at 10 kHz, a lever swinging through a sine torque, pushed on rows 160..183: the 1 s
     # exclusion window covered the whole log, every prediction was the GP's prior and the whole
-    # push went unflagged (0 of 36). The same samples over 6 s at 100 Hz flag exactly the push.
+    # push went unflagged (0 of 24). The same samples over 4 s at 100 Hz flag exactly the push.
     rng = np.random.default_rng(0)
-    i = np.arange(600)
-    q = 1.2 * np.sin(2 * np.pi * i / 300.0)
-    tau = 5.0 * np.sin(q) + 0.02 * rng.normal(size=600)
-    tau[240:276] += 1.5
-    model = MultimodalGP(max_sweeps=10, fit_points=200, fit_iter=30).fit(t=i / 1e4, q=q[:, None], tau=tau[:, None])
-    np.testing.assert_array_equal(np.flatnonzero(model.disturbed_), np.arange(240, 276))
+    i = np.arange(400)
+    q = 1.2 * np.sin(2 * np.pi * i / 200.0)
+    tau = 5.0 * np.sin(q) + 0.02 * rng.normal(size=400)
+    tau[160:184] += 1.5
+    model = MultimodalGP(max_sweeps=8, fit_points=150, fit_iter=20).fit(t=i / 1e4, q=q[:, None], tau=tau[:, None])
+    np.testing.assert_array_equal(np.flatnonzero(model.disturbed_), np.arange(160, 184))
     assert model.report_["windows_shortened_s"] == pytest.approx(
-        {"exclusion_s": 0.2 * 0.0599, "block_s": 0.4 * 0.0599, "mode_smoothing_s": 0.8 * 0.0599})
+        {"exclusion_s": 0.2 * 0.0399, "block_s": 0.4 * 0.0399, "mode_smoothing_s": 0.8 * 0.0399})
 
 
 # ---------------------------------------------------------------------------------------------
