@@ -75,15 +75,18 @@ def _dims(shape: tuple) -> str:
 
 
 def _header(d, file) -> None:
-    from .field import FORMAT, KINDS, VERSION
+    from . import field
 
+    FORMAT, KINDS = field.FORMAT, field.KINDS
+    versions = tuple(getattr(field, "READABLE_VERSIONS", (field.VERSION,)))
     if not isinstance(d, dict):
         raise _fail(file, f"expected a JSON object with \"format\": \"{FORMAT}\", found a {type(d).__name__}")
     if d.get("format") != FORMAT:
         raise _fail(file, f"not an {FORMAT} file ('format' is {_shown(d.get('format'))}, expected '{FORMAT}')")
     version = d.get("version")
-    if isinstance(version, bool) or not isinstance(version, (int, np.integer)) or version != VERSION:
-        raise _fail(file, f"{FORMAT} version {_shown(version)} is not supported (this mmgp reads version {VERSION})")
+    if isinstance(version, bool) or not isinstance(version, (int, np.integer)) or version not in versions:
+        raise _fail(file, f"{FORMAT} version {_shown(version)} is not supported (this mmgp reads version(s) "
+                          f"{', '.join(map(str, versions))})")
     missing = [k for k in ("kind", "support", "weights", "lengthscales", "signal_var", "storage_offset") if k not in d]
     if missing:
         raise _fail(file, f"key(s) {missing} missing: the file is incomplete (export it again with 'mmgp export')")
@@ -147,7 +150,8 @@ def validate_compensator_dict(d, file: str | os.PathLike | None = None) -> None:
     evaluator cannot be rebuilt from: not a JSON object, another format or version, a missing key
     (``kind``, ``support``, ``weights``, ``lengthscales``, ``signal_var``, ``storage_offset``), a
     value of the wrong type, shape or range (positions within +-1e6 rad or m, lengthscales in
-    [1e-6, 1e6], everything finite), or a claim that the storage goes below 0.
+    [1e-6, 1e6], everything finite; ``info`` and ``prior`` objects or null), or a claim that the
+    storage goes below 0. Versions: those ``field.READABLE_VERSIONS`` lists (else ``VERSION``).
 
     ``d``: the parsed JSON object (arrays as nested lists) or the NPZ's ``meta`` with its arrays
     (``support`` (N, n), ``weights`` (N, n), ``lengthscales`` (n,), ``workspace_bounds`` (2, n)).
@@ -159,5 +163,8 @@ def validate_compensator_dict(d, file: str | os.PathLike | None = None) -> None:
     _names(d, file, n)
     s2 = _number(d, "signal_var", file, positive=True)
     _storage_claims(d, file, s2, weights, lengthscales)
-    if d.get("info") is not None and not isinstance(d["info"], dict):
-        raise _fail(file, f"'info' must be a JSON object, found {_shown(d['info'])}")
+    for key in ("info", "prior"):  # the prior's content is checked by the evaluator (physical consistency)
+        if d.get(key) is not None and not isinstance(d[key], dict):
+            raise _fail(file, f"'{key}' must be a JSON object or null, found {_shown(d[key])}")
+    if d.get("deviation_sampled_max") is not None:
+        _array(d, "deviation_sampled_max", file, (n,))
