@@ -48,7 +48,14 @@ def read_sections(path: str | Path) -> dict:
     if not path.is_file():
         raise InputError("settings file does not exist", file=path)
     try:
-        loaded = yaml.safe_load(path.read_text()) or {}
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): "
+                         "save the settings file as UTF-8", file=path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read the settings file ({exc.strerror or exc})", file=path) from None
+    try:
+        loaded = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         # Where the broken construct starts (an unclosed quote or bracket is reported by the
         # parser at the end of the file), and what is wrong, on one line.

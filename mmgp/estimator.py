@@ -15,6 +15,7 @@ from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
 from ._version import __version__
+from .data.folds import windows_for_duration
 from .data.logs import MIN_SAMPLES, RobotLog
 from .errors import InputError
 from .gp.hyper import Hyper
@@ -226,6 +227,19 @@ class MultimodalGP(BaseEstimator):
         except (ValueError, RuntimeError, TypeError) as exc:
             raise InputError(f"setting 'device': {exc}") from None
 
+    def _validate_saved(self, path: Path) -> None:
+        """:meth:`_validate` for settings read from ``path``; the device is checked when used (a
+        model trained on a GPU may be loaded on a machine without one, to predict on another)."""
+        if not isinstance(self.device, str):
+            raise InputError(f"setting 'device': expected a device name, got {self.device!r}", file=path)
+        device, self.device = self.device, "cpu"
+        try:
+            self._validate()
+        except InputError as exc:
+            raise InputError(exc.message, file=path) from None
+        finally:
+            self.device = device
+
     def _sem_settings(self, basis_kind: str | None) -> dict:
         return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
                     max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
@@ -277,6 +291,9 @@ class MultimodalGP(BaseEstimator):
         if len(feats.Y) < 5 * k_max:
             raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
         kw = self._sem_settings(basis_kind)
+        shortened = windows_for_duration(min(lg.t[-1] - lg.t[0] for lg in logs_), exclusion_s=self.exclusion_s,
+                                         block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s)
+        kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis)
         if self.n_modes == "auto":
             sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
@@ -294,6 +311,7 @@ class MultimodalGP(BaseEstimator):
             robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind,
             with_friction=fscale is not None, mode_selection=selection,
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
+        self.report_["windows_shortened_s"] = shortened
         return self
 
     def _set_sem(self, sem) -> None:
@@ -430,19 +448,24 @@ class MultimodalGP(BaseEstimator):
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
         format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
+        from .models.saved import read_model_arrays, read_model_meta
+
         model_dir = Path(model_dir)
-        meta = _read_meta(model_dir)
-        model = cls(**meta["settings"])
+        meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, MODEL_VERSION))
+        try:
+            model = cls(**meta["settings"])
+        except TypeError as exc:
+            raise InputError(f"'settings' of this model are not this mmgp's ({exc})", file=model_dir / "model.json") from None
+        model._validate_saved(model_dir / "model.json")
         K = model.n_modes_ = int(meta["n_modes"])
         model.joint_names_ = list(meta["joint_names"])
-        with np.load(model_dir / "model.npz") as z:
-            model.support_X_ = [z[f"X_{k}"] for k in range(K)]
-            model.support_Y_ = [z[f"Y_{k}"] for k in range(K)]
-            model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"])
-                             for k in range(K)]
-            model.basis_coef_ = [z[f"basis_coef_{k}"] if f"basis_coef_{k}" in z.files else None for k in range(K)]
-            model.friction_scale_ = z["friction_scale"] if "friction_scale" in z.files else None
-            model.inducing_ = [z[f"inducing_{k}"] if f"inducing_{k}" in z.files else None for k in range(K)]
+        z = read_model_arrays(model_dir, meta)
+        model.support_X_ = [z[f"X_{k}"] for k in range(K)]
+        model.support_Y_ = [z[f"Y_{k}"] for k in range(K)]
+        model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
+        model.basis_coef_ = [z.get(f"basis_coef_{k}") for k in range(K)]
+        model.friction_scale_ = z.get("friction_scale")
+        model.inducing_ = [z.get(f"inducing_{k}") for k in range(K)]
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support
         model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
         model.basis_kind_ = meta.get("mean_basis")
@@ -451,31 +474,6 @@ class MultimodalGP(BaseEstimator):
         model.semiparametric_ = model.semiparametric if model.robot_spec_ else "none"
         model._gps = [None] * K
         return model
-
-
-def _read_meta(model_dir: Path) -> dict:
-    """model.json, its settings under "settings" whatever the version."""
-    path = model_dir / "model.json"
-    if not path.is_file():
-        raise InputError("not a trained model folder (model.json missing; run 'mmgp train' first)", file=model_dir)
-    try:
-        meta = json.loads(path.read_text())
-    except ValueError as exc:
-        raise InputError(f"model.json is not valid JSON ({exc})", file=path) from None
-    version = meta.get("version") if isinstance(meta, dict) else None
-    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT or version not in (1, 2, MODEL_VERSION):
-        raise InputError(f"unsupported model format {meta.get('format') if isinstance(meta, dict) else None} "
-                         f"v{version} (this mmgp reads {MODEL_FORMAT} v1-v{MODEL_VERSION})", file=path)
-    if version == 1:
-        # v1 kept the settings of the former TrainConfig under "config"; "modes" is now n_modes.
-        settings = dict(meta.pop("config"))
-        settings["n_modes"] = settings.pop("modes")
-        spec = meta.get("robot") or {}
-        settings["robot"] = spec.get("robot") or spec.get("urdf")
-        meta["settings"] = settings
-    if not (model_dir / "model.npz").is_file():
-        raise InputError("model.npz missing", file=model_dir)
-    return meta
 
 
 # ----------------------------------------------------------------------------------------------

@@ -57,7 +57,15 @@ def _summary(model) -> str:
     spec = model.robot_spec_ or {}
     return (f"{rep['n_samples']} samples, robot {spec.get('robot') or spec.get('urdf')}, {rep['n_modes']} mode(s), {rep['disturbance']['n_disturbed']} flagged "
             f"disturbed; {rep['n_sweeps']} sweeps ({'converged' if rep['converged'] else 'sweep limit'}), "
-            f"{rep['timings']['total_s']:.1f} s.")
+            f"{rep['timings']['total_s']:.1f} s.{_shortened(rep)}")
+
+
+def _shortened(rep: dict) -> str:
+    short = rep.get("windows_shortened_s") or {}
+    if not short:
+        return ""
+    parts = ", ".join(f"{k} {v:.3g} s" for k, v in short.items())
+    return f" The log is short: time windows shortened to {parts}."
 
 
 @app.command()

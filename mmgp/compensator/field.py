@@ -58,6 +58,7 @@ from .erf import erf
 from .kernels import WendlandProfile
 from .passivity import potential_bounds
 from .prior import RigidBodyPrior
+from .validate import READ_ERRORS, validate_compensator_dict
 
 FORMAT = "mmgp-compensator"
 VERSION = 2
@@ -344,7 +345,7 @@ def _read(path: Path) -> dict:
             for k in _ARRAYS:
                 d[k] = z[k]
             return d
-    except (OSError, ValueError, KeyError) as exc:
+    except READ_ERRORS as exc:
         raise ValueError(f"file {path}: not a readable {FORMAT} file ({exc})") from exc
 
 
@@ -356,6 +357,7 @@ def load_compensator(path) -> Compensator:
     storage offset does not match the offset recomputed from its contents (edited or corrupt)."""
     path = Path(path)
     d = _read(path)
+    validate_compensator_dict(d, path)
     if d.get("format") != FORMAT:
         raise ValueError(f"file {path}: format is {d.get('format')!r}, expected {FORMAT!r}")
     if int(d.get("version", -1)) not in READABLE_VERSIONS:

@@ -17,17 +17,19 @@ Conventions used throughout:
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import json
 import os
 import sys
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
 
-from ..errors import InputError
+from ..errors import InputError, describe, one_line
 from .inertial import transport_matrix
 
 __all__ = [
@@ -262,6 +264,16 @@ class RobotModel:
                 f"{len(one_dof)} movable joints {all_names}, and the first {n_joints} do not form one "
                 f"serial chain; give the joint names (--joint-names or metadata 'joint_names')",
                 column="joint_names")
+        # Unlogged joints are locked; that is only safe for end joints (gripper fingers): a locked
+        # joint with movable joints below it would silently freeze part of the arm the log moves.
+        rest = [j for j in one_dof if j not in first]
+        inner = [str(model.names[j]) for j in rest if any(j in _ancestors(model, k) for k in rest)]
+        if inner:
+            raise InputError(
+                f"the log has {n_joints} joint(s) but the robot model has {len(one_dof)} movable joints "
+                f"{all_names}; joints {inner} would be left out though movable joints follow them: log "
+                f"every joint of the arm, or name the logged joints (metadata 'joint_names')",
+                column=f"q_{n_joints}")
         return first
 
     @classmethod
@@ -273,9 +285,11 @@ class RobotModel:
         if not path.is_file():
             raise InputError("URDF file does not exist", file=path)
         try:
-            model = pin.buildModelFromUrdf(str(path))
+            with _parser_output() as said:
+                model = pin.buildModelFromUrdf(str(path))
         except Exception as exc:  # Pinocchio raises ValueError/RuntimeError with parser text
-            raise InputError(f"cannot parse URDF ({type(exc).__name__}: {exc})", file=path) from None
+            detail = f"; the parser says: {said[0]}" if said and said[0] else ""
+            raise InputError(f"cannot parse URDF ({describe(exc)}{detail})", file=path) from None
         return cls(model, joint_names, n_joints=n_joints, urdf_path=path, name=name,
                    locked_positions=locked_positions)
 
@@ -419,6 +433,28 @@ class RobotModel:
         return new
 
 
+@contextlib.contextmanager
+def _parser_output():
+    """Hold back what the C++ URDF parser writes to file descriptor 2 (the error line says it
+    instead); yields a list that receives that text, on one line, after the block."""
+    said: list[str] = []
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 to protect
+        yield said
+        return
+    with tempfile.TemporaryFile() as sink:
+        sys.stderr.flush()
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            said.append(one_line(sink.read(4000).decode("utf-8", "replace"), 200))
+
+
 def _ancestors(model: pin.Model, j: int) -> list[int]:
     out = []
     j = model.parents[j]
@@ -461,7 +497,8 @@ def _log_header(log_path) -> tuple[str | None, dict, int | None]:
             meta["joint_names"] = [str(s) for s in json.loads(meta["joint_names"])]
         except (ValueError, TypeError):
             raise InputError("metadata 'joint_names' is not a JSON list of strings", file=path) from None
-    nq = sum(1 for c in cols if str(c).startswith("q_") and str(c)[2:].isdigit())
+    # distinct names: a duplicated column is the log reader's error to name, not an extra joint
+    nq = len({str(c) for c in cols if str(c).startswith("q_") and str(c)[2:].isdigit()})
     return str(path), meta, (nq or None)
 
 
