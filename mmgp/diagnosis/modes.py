@@ -141,9 +141,26 @@ def _screen(cands, e_all, w, M, idx) -> list:
     return out
 
 
-def _admissible(eff, rm: dict, base: np.ndarray, ctx) -> bool:
-    """Both modes physically possible (e.g. masses non-negative, centres of mass within reach)."""
-    return all(eff.admissible(dict(zip(eff.atoms(), base + rm["theta"][k])), ctx) for k in range(2))
+def _constrained_modes(eff, rm: dict, base: np.ndarray, C: np.ndarray, e: np.ndarray, w: np.ndarray,
+                       V: np.ndarray, ctx) -> np.ndarray | None:
+    """The two modes' coefficients refitted on their samples (posterior weights) with the
+    effect's magnitudes non-negative (a mode without payload has mass 0, not a slightly negative
+    one), as changes from ``base``; None when a mode is still not physically possible (e.g. its
+    centre of mass beyond the robot's reach)."""
+    from .fitting import cone_gram_fit, constraints
+
+    atoms = list(eff.atoms())
+    nonneg, cones = constraints([eff], atoms, list(range(len(atoms))), ctx)
+    y = e + C @ base  # the residual without the effect's one-mode fit
+    theta = np.zeros_like(rm["theta"])
+    for k in range(2):
+        Wv = V * w[None, :] * rm["post"][:, k, None]
+        G = np.einsum("tj,tjp,tjq->pq", Wv, C, C)
+        total = cone_gram_fit(G, np.einsum("tj,tjp,tj->p", Wv, C, y), nonneg, cones)
+        if not eff.admissible(dict(zip(eff.atoms(), total)), ctx):
+            return None
+        theta[k] = total - base
+    return theta
 
 
 def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: np.ndarray, f_c: float | None,
@@ -163,8 +180,12 @@ def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: 
     tests = [(eff, C, mode_switch_test(C[idx], e_all[idx], w, M[idx], folds, lag=lag))
              for _, eff, C in sorted(_screen(cands, e_all, w, M, idx), key=lambda x: -x[0])[:2]]
     base = {eff: np.array([base_coef.get(a, 0.0) for a in eff.atoms()]) for eff, _ in cands}
-    best = [(eff, rm) for eff, _, rm in tests
-            if rm["p"] < alpha / len(cands) and _admissible(eff, rm, base[eff], ctx)]
+    best = []
+    for eff, C, rm in tests:
+        if rm["p"] < alpha / len(cands):
+            theta = _constrained_modes(eff, rm, base[eff], C[idx], e_all[idx], w, M[idx], ctx)
+            if theta is not None:
+                best.append((eff, {**rm, "theta": theta}))
     if not best:
         return None
     eff, rm = max(best, key=lambda x: x[1]["d"].mean())

@@ -50,8 +50,10 @@ from sklearn.base import BaseEstimator, clone
 
 from ..errors import InputError
 from . import stages as st
+from .fitting import effect_findings, fit_physics
+from .reidentify import consistent_refit, model_torque, reidentify
 from .result import DiagnosisResult, disturbance_finding, mode_switch_finding
-from .selection import FoldGrams, ForwardCVSelector
+from .selection import FoldGrams, ForwardCVSelector, extend_nested, prune
 from .separation import SEPARATION_METHODS, runs, spans_of
 
 
@@ -89,7 +91,11 @@ class Diagnoser(BaseEstimator):
     n_folds: time blocks of the cross-validation (selection, uncertainty and the stage figures).
     alpha: family-wise significance level of the selection and of the mode-switch test.
     max_steps: at most this many effects (None: no limit).
-    payload_links: "auto" (links whose mass the trajectory can see) or 0-based link indices.
+    payload_links: "auto" (the most distal links, where the trajectory can see a mass: CONTRACT
+        section 3 names a mass elsewhere an inertial-parameter difference) or 0-based link indices.
+    reid_min_gain: the rigid body is re-identified (effect ``inertial_parameters``) when its base
+        parameters cut the whole library's held-out error significantly and by at least this
+        fraction.
     separate: how pushes are found: "auto" (robust scan gated by the learner), "scan" (the scan
         alone), "em" (the learner's flags alone) or "none".
     push_alpha: family-wise false-alarm level of the push scan over the log's independent samples.
@@ -120,7 +126,8 @@ class Diagnoser(BaseEstimator):
     """
 
     def __init__(self, effects=None, selector=None, differentiator=None, *, n_folds: int = 20, alpha: float = 0.05,
-                 max_steps: int | None = None, payload_links="auto", separate: str = "auto",
+                 max_steps: int | None = None, payload_links="auto", reid_min_gain: float = 0.05,
+                 separate: str = "auto",
                  push_alpha: float = 0.001, em_modes: int = 1, em_points: int = 500, em_gate_peak: float = 5.0,
                  rest_factor: float = 1.0, sign_noise_factor: float = 3.0, lowpass: bool = True,
                  max_samples: int = 6000, modes: bool = True, mode_folds: int = 10, mode_max_samples: int = 1000,
@@ -133,6 +140,7 @@ class Diagnoser(BaseEstimator):
         self.alpha = alpha
         self.max_steps = max_steps
         self.payload_links = payload_links
+        self.reid_min_gain = reid_min_gain
         self.separate = separate
         self.push_alpha = push_alpha
         self.em_modes = em_modes
@@ -208,18 +216,20 @@ class Diagnoser(BaseEstimator):
                                 n_folds=self.n_folds, **self._settings("sign_noise_factor", "lowpass", "rest_factor"))
         laps("context_s")
         lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2)
+        start, reid = reidentify(prob, lib, alpha=self.alpha, min_gain=self.reid_min_gain)
+        laps("reidentify_s")
         push_kw = self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed")
-        pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, **push_kw)
+        pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, **push_kw)
         use = ~pushes.disturbed
         if pushes.disturbed.any():
             lib = st.fit_library(prob, lib.ctx, use)
         laps("separate_s")
-        w = st.joint_weights((prob.r - lib.A @ lib.coef)[use], prob.M[use])
-        grams = FoldGrams(lib.A, prob.r, use, prob.folds, W=prob.M)
-        selector = self._selector().fit(prob.library, lib.keys, grams, w, lib.ctx)
+        phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
         laps("select_s")
-        phys = st.fit_physics(prob, lib, grams, selector.selected_, w, use)
-        findings = st.effect_findings(phys, alpha=self.alpha)
+        findings = effect_findings(phys, alpha=self.alpha)
+        for f in findings:
+            if f["effect"] == "inertial_parameters":
+                f["evidence"].update(identifiability=rb_ev, reidentification=reid)
         fit = self._stage_errors(prob, phys, use, laps)
         ms, pushes = self._mode_switch(prob, phys, pushes, laps)
         if ms is not None:
@@ -230,11 +240,40 @@ class Diagnoser(BaseEstimator):
             findings.append(mode_switch_finding(ms, phys.ctx, alpha=self.alpha, n_folds=self.mode_folds))
         if pushes.disturbed.any():
             findings.append(_disturbance(pushes, prob.t))
-        return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps)
+        info = {"reidentification": reid, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
+                                                      for e, p in dropped]}
+        return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
+
+    def _select(self, prob, lib, use, start):
+        """Forward selection from ``start`` on samples ``use``, nested extensions (load
+        dependence of a found Coulomb friction), backward pruning of effects whose own held-out
+        gain is not significant, the refit; then once more with the load of load-dependent
+        friction taken from the fitted model. The rigid body, when re-identified, is refitted
+        physically consistent."""
+        ctx, keys, A = lib.ctx, lib.keys, lib.A
+        w = st.joint_weights((prob.r - lib.A @ lib.coef)[use], prob.M[use])
+        rounds = 2 if any(e.name == "load_dependent_friction" for e in prob.library) else 1
+        for k in range(rounds):
+            # robust weights of the whole library's fit: a push the separation missed does not
+            # decide which effect wins
+            grams = FoldGrams(A, prob.r, use, prob.folds, W=lib.weights)
+            selector = self._selector().fit(st.candidates(prob, start), keys, grams, w, ctx, start=start)
+            chosen = extend_nested(selector.selected_, prob.library, keys, grams, w, ctx, self.alpha)
+            chosen, dropped = prune(chosen, keys, grams, w, self.alpha)
+            phys = fit_physics(prob, st.LibraryFit(ctx, keys, A, lib.coef, lib.weights), grams, chosen, w, use,
+                               seed=self.seed)
+            if k + 1 < rounds:
+                ctx = phys.ctx.with_load(model_torque(prob, phys.ctx, chosen, phys.coefficients()))
+                keys, A = prob.atoms(ctx)
+                w = st.joint_weights(phys.residual(prob.r)[use], prob.M[use])
+        coef, rb_ev = consistent_refit(prob, phys, use)
+        if coef:
+            phys = phys.with_coefficients(coef)
+        return phys, selector, dropped, rb_ev
 
     def _stage_errors(self, prob, phys, use, laps) -> dict:
         denom = st.torque_variance(prob, use)
-        fit = st.stage_errors(phys, denom)
+        fit = st.stage_errors(prob, phys, use, denom)
         laps("fit_s")
         if self.gp:
             fit["with_physics_and_gp"] = st.gp_stage_errors(prob, phys, use, denom, points=self.gp_points,
@@ -262,7 +301,7 @@ class Diagnoser(BaseEstimator):
         laps("modes_s")
         return ms, pushes
 
-    def _result(self, prob, phys, selector, pushes, ms, findings, fit, use, laps) -> DiagnosisResult:
+    def _result(self, prob, phys, selector, pushes, ms, findings, fit, use, laps, extra: dict) -> DiagnosisResult:
         from .location import locate
 
         ctx, t = phys.ctx, prob.t
@@ -274,7 +313,8 @@ class Diagnoser(BaseEstimator):
                 "selection_path": [{"effects": [f"{e.name}@{e.where(ctx)}" for e in p.effects[-1:]], "cv": p.cv_mean}
                                    for p in selector.path_],
                 "chosen_step": selector.chosen_step_,
-                "separation": {k: v for k, v in pushes.info.items() if k != "spans"}, "timings": laps.total()}
+                "separation": {k: v for k, v in pushes.info.items() if k != "spans"}, **extra,
+                "timings": laps.total()}
         plot = None
         if self.plots:
             plot = {"q": ctx.q[use], "dq": ctx.dq[use], "tau": prob.tau[use], "r_before": prob.r[use],
