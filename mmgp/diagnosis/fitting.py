@@ -161,11 +161,16 @@ def _nest(flat: dict, like):
 
 def parameter_intervals(e, phys: PhysicsFit, params: dict) -> dict:
     """Percentile interval (``LEVEL``) of each of ``e``'s parameters over the bootstrap
-    replicates: the parameters' shape with [low, high] in place of each number (None where a
-    replicate gives no finite value)."""
+    replicates of ``phys``: see :func:`intervals`."""
     pos = {phys.keys[i]: k for k, i in enumerate(phys.S)}
-    atoms = e.atoms()
-    reps = [_flatten(e.params({a: float(b[pos[a]]) for a in atoms}, {})[0]) for b in phys.boot]
+    return intervals(e, [{a: float(b[pos[a]]) for a in e.atoms()} for b in phys.boot], params)
+
+
+def intervals(e, replicates: list, params: dict) -> dict:
+    """Percentile interval (``LEVEL``) of each of effect ``e``'s parameters over coefficient
+    replicates (atom -> value dicts): the parameters' shape with [low, high] in place of each
+    number (None where fewer than 10 replicates give a finite value)."""
+    reps = [_flatten(e.params(c, {})[0]) for c in replicates]
     lo, hi = 50 * (1 - LEVEL), 50 * (1 + LEVEL)
     out = {}
     for path in _flatten(params):
@@ -211,7 +216,7 @@ def effect_findings(phys: PhysicsFit, *, alpha: float) -> list[dict]:
     cov = {(phys.keys[a], phys.keys[b]): float(C[ia, ib]) for ia, a in enumerate(phys.S) for ib, b in enumerate(phys.S)}
     findings = []
     for e in phys.chosen:
-        if any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
+        if not e.name or any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
             continue
         ev, jmain = _evidence(phys, e, err_phys, alpha)
         params, std = e.params(coef, cov)

@@ -42,6 +42,7 @@ Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -51,8 +52,9 @@ from sklearn.base import BaseEstimator, clone
 from ..errors import InputError
 from . import stages as st
 from .fitting import effect_findings, fit_physics
+from .modes import near_switches
 from .reidentify import consistent_refit, model_torque, reidentify
-from .result import DiagnosisResult, disturbance_finding, mode_switch_finding
+from .result import DiagnosisResult, disturbance_finding, mode_effect_findings, mode_switch_finding
 from .selection import FoldGrams, ForwardCVSelector, extend_nested, prune
 from .separation import SEPARATION_METHODS, runs, spans_of
 
@@ -226,17 +228,21 @@ class Diagnoser(BaseEstimator):
         laps("separate_s")
         phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
         laps("select_s")
+        ms, pushes = self._mode_switch(prob, phys, pushes, laps)
+        if ms is not None:
+            # the modes explain their part: the other effects are chosen again on what they leave
+            # (samples within a filter memory of a switch mix both modes: left out)
+            near = near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)
+            (prob, body), use = st.with_modes(prob, ms), ~pushes.disturbed & ~near
+            phys, selector, dropped, rb_ev = self._select(prob, st.fit_library(prob, phys.ctx, use), use, start + body)
+            laps("reselect_s")
         findings = effect_findings(phys, alpha=self.alpha)
         for f in findings:
             if f["effect"] == "inertial_parameters":
                 f["evidence"].update(identifiability=rb_ev, reidentification=reid)
         fit = self._stage_errors(prob, phys, use, laps)
-        ms, pushes = self._mode_switch(prob, phys, pushes, laps)
         if ms is not None:
-            # the single effect on that index is the modes' average: the mode finding replaces it
-            where = ms.effect.where(phys.ctx)
-            findings = [f for f in findings if not (f["effect"] == ms.effect.name and
-                                                    all(f.get(k) == v for k, v in where.items()))]
+            findings += mode_effect_findings(ms, phys.ctx)
             findings.append(mode_switch_finding(ms, phys.ctx, alpha=self.alpha, n_folds=self.mode_folds))
         if pushes.disturbed.any():
             findings.append(_disturbance(pushes, prob.t))
@@ -293,8 +299,24 @@ class Diagnoser(BaseEstimator):
         cands = [(e, phys.A[:, :, [index[a] for a in e.atoms()]]) for e in prob.library if e.switchable]
         if not (self.modes and cands):
             return None, pushes
-        ms = find_mode_switch(cands, phys.residual(prob.r), phys.w, prob.M, prob.t, prob.f_c, phys.coefficients(),
-                              phys.ctx, alpha=self.alpha, n_folds=self.mode_folds, max_samples=self.mode_max_samples)
+        # the modes the multimodal learner (the inference `mmgp train` makes) sees in what the
+        # physics leaves: where the switching fits start, and the gate of the push re-scan
+        em = st.run_learner(prob, max(2, self.em_modes), max_points=self.em_points, seed=self.seed,
+                            previous=pushes.em, resid=st.raw_residual(prob, phys))
+        pushes = dataclasses.replace(pushes, em=em)
+        e, coef, ctx = phys.residual(prob.r), phys.coefficients(), phys.ctx
+        kw = dict(alpha=self.alpha, n_folds=self.mode_folds, max_samples=self.mode_max_samples)
+        ms = find_mode_switch(cands, e, phys.w, prob.M, prob.t, prob.f_c, coef, ctx, init=em["mode"], **kw)
+        if ms is not None and ms.effect.linearised:
+            # the point mass's inertia is linearised at one centre of mass for both modes: at the
+            # heavier mode's own (the lighter one's mass makes its part small), then refitted
+            eff, C0 = ms.effect, dict(cands)[ms.effect]
+            atoms = eff.atoms()
+            ctx = eff.relinearise(dict(zip(atoms, ms.base + ms.theta[1])), ctx)
+            C = prob.lowpass(np.stack(eff.columns(ctx), axis=2))
+            e = e + (C0 - C) @ ms.base
+            again = find_mode_switch([(eff, C)], e, phys.w, prob.M, prob.t, prob.f_c, coef, ctx, init=ms.labels, **kw)
+            ms = again or ms
         if ms is not None and self.separate in ("auto", "scan"):
             pushes = st.rescan_pushes(prob, ms, phys, pushes, method=self.separate,
                                       **self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed"))

@@ -44,6 +44,29 @@ def mode_switch_finding(ms, ctx, *, alpha: float, n_folds: int) -> dict:
                         f"{int((d > 0).sum())} of {len(d)} time blocks.")}
 
 
+def mode_effect_findings(ms, ctx) -> list[dict]:
+    """One finding of the switching effect per mode whose magnitude (its first parameter, e.g.
+    the payload's mass) is above zero with 97.5% confidence (CONTRACT section 3: a payload per
+    mode when it switches); a mode without one (the payload off) gives none."""
+    eff = ms.effect
+    first, unit = next(iter(eff.units.items()))
+    out = []
+    for k, pm in enumerate(ms.per_mode):
+        ci = pm.get("interval") or {}
+        if not (pm.get("present") and ci.get(first)):
+            continue
+        params = {key: v for key, v in pm.items() if key not in ("fraction", "interval", "present")}
+        lo, hi = ci[first]
+        out.append({"effect": eff.name, **eff.where(ctx), "mode": k, "params": params,
+                    "evidence": {"mode": k, "fraction_of_time": pm["fraction"], "params_interval": ci,
+                                 "interval_method": "block bootstrap of the mode's fit over the mode test's time "
+                                                    "blocks, percentile"},
+                    "explanation": f"in mode {k} ({100 * pm['fraction']:.0f}% of the time): "
+                                   f"{next(iter(eff.where(ctx).values()))} carries {eff.label} of "
+                                   f"{pm[first]:.3g} {unit} ({lo:.3g} to {hi:.3g})."})
+    return out
+
+
 def disturbance_finding(disturbed: np.ndarray, spans: list, evidence: dict) -> dict:
     """The ``external_disturbance`` finding: ``disturbed`` (T,) bool, ``spans`` in s."""
     return {"effect": "external_disturbance", "joint": None,

@@ -11,6 +11,7 @@ the learner) -> ``fit_library`` again without the pushes -> ``select_effects`` -
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -310,3 +311,25 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
         disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=scan["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)
+
+
+def raw_residual(prob: Problem, phys: PhysicsFit) -> np.ndarray:
+    """(T, n) unfiltered residual of the fitted physics: ``r_raw`` less the chosen effects'
+    unfiltered columns at the fitted coefficients."""
+    if not phys.S:
+        return prob.r_raw
+    keys, A = build_atoms(phys.chosen, phys.ctx)
+    coef = phys.coefficients()
+    return prob.r_raw - A @ np.array([coef.get(k, 0.0) for k in keys])
+
+
+def with_modes(prob: Problem, ms) -> tuple[Problem, list]:
+    """The problem once a mode switch is found: the switching effect leaves the library and a
+    mode-gated rigid body (``modes.ModeBody``: the switching link's ten parameters, per mode
+    that holds the effect) joins it, as an effect the selection starts from. Returns (problem,
+    the effects to start from besides the re-identified body)."""
+    from .modes import ModeBody
+
+    present = [k for k, pm in enumerate(ms.per_mode) if pm.get("present")]
+    body = ModeBody(ms.effect.index, ms.labels, present or [1])
+    return dataclasses.replace(prob, library=[e for e in prob.library if e != ms.effect] + [body]), [body]
