@@ -217,14 +217,19 @@ class Diagnoser(BaseEstimator):
         prob = st.build_problem(log, robot, n_full, smear_s, effects=self.effects, payload_links=self.payload_links,
                                 n_folds=self.n_folds, **self._settings("sign_noise_factor", "lowpass", "rest_factor"))
         laps("context_s")
-        lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2)
+        push_kw = self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed")
+        # the learner's push flags are where the robust fit starts: with many long pushes a fit
+        # that starts from least squares can settle where the pushes dragged it
+        em = st.run_learner(prob, self.em_modes, max_points=self.em_points, seed=self.seed) \
+            if self.separate != "none" else None
+        lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2,
+                             init=None if em is None else 1.0 - em["p_disturbed"])
         start, reid = reidentify(prob, lib, alpha=self.alpha, min_gain=self.reid_min_gain)
         laps("reidentify_s")
-        push_kw = self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed")
-        pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, **push_kw)
+        pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, em=em, **push_kw)
         use = ~pushes.disturbed
         if pushes.disturbed.any():
-            lib = st.fit_library(prob, lib.ctx, use)
+            lib = st.fit_library(prob, lib.ctx, use, init=None if em is None else 1.0 - em["p_disturbed"])
         laps("separate_s")
         phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
         laps("select_s")

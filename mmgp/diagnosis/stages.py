@@ -123,29 +123,35 @@ class LibraryFit:
     weights: np.ndarray
 
 
-def _robust_fit(prob: Problem, A: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _robust_fit(prob: Problem, A: np.ndarray, use: np.ndarray, init: np.ndarray | None = None):
     # Huber weights to convergence, then Tukey-bisquare steps from there: pushes get weight zero,
     # so they stand out in the residual instead of dragging the fit (least squares spreads a
     # push over every column; Huber still lets a long push outweigh a small effect)
     fit = robust_regression(A[use], prob.r[use], mask=prob.M[use], huber_steps=10, tukey_steps=5, tol=1e-4,
-                            centre=False, solver="gram")
+                            centre=False, solver="gram", init=None if init is None else init[use])
     weights = np.zeros_like(prob.r)
-    weights[use] = fit.weights
+    weights[use] = fit.weights if init is None else fit.weights * init[use]
     return fit.coef, weights
 
 
-def fit_library(prob: Problem, ctx: Context, use: np.ndarray, *, relinearise: int = 0) -> LibraryFit:
+def fit_library(prob: Problem, ctx: Context, use: np.ndarray, *, relinearise: int = 0,
+                init: np.ndarray | None = None) -> LibraryFit:
     """Robust fit of the whole library on samples ``use`` (T,) bool, with ``relinearise`` rounds
-    of moving linearised effects (payload centres of mass) to the fit and refitting."""
+    of moving linearised effects (payload centres of mass) to the fit and refitting; ``init``
+    (T,) weights in [0, 1] (one minus the learner's push probability) where the reweighting
+    starts, and which scale the robust weights: a sample the learner holds disturbed counts
+    little in choosing effects (whether it is reported as a push is the scan's and the gate's
+    decision)."""
     keys, A = prob.atoms(ctx)
-    coef, weights = _robust_fit(prob, A, use)
+    init = None if init is None else np.repeat(np.asarray(init, dtype=np.float64)[:, None], ctx.n, axis=1)
+    coef, weights = _robust_fit(prob, A, use, init)
     if any(e.linearised for e in prob.library):
         for _ in range(relinearise):
             fitted = dict(zip(keys, coef))
             for e in prob.library:
                 ctx = e.relinearise(fitted, ctx)
             keys, A = prob.atoms(ctx)
-            coef, weights = _robust_fit(prob, A, use)
+            coef, weights = _robust_fit(prob, A, use, init)
     return LibraryFit(ctx, keys, A, coef, weights)
 
 
@@ -195,23 +201,25 @@ def start_residual(prob: Problem, lib: LibraryFit, start) -> np.ndarray:
 
 
 def separate_pushes(prob: Problem, lib: LibraryFit, selector, *, method: str, push_alpha: float, em_modes: int,
-                    em_points: int, em_gate_peak: float, seed: int, start=()) -> Separation:
+                    em_points: int, em_gate_peak: float, seed: int, start=(), em: dict | None = None) -> Separation:
     """Which samples an external force disturbed (``method``: see ``SEPARATION_METHODS``).
 
     Physics first, pushes from what it leaves: effects are selected on the robust fit's weights
     (pushes carry small weights there), then the residual of the *selected* model is scanned.
     Scanning the full library's residual instead would see an over-fitted, too-quiet residual
     wherever the log has few independent samples (slow trajectories). ``start``: effects the
-    model holds from the outset (the re-identified body).
+    model holds from the outset (the re-identified body); ``em``: a learner run on the nominal
+    residual to reuse (it is run again on the re-identified body's residual when there is one).
     """
     T = len(prob.t)
     info = {"method": sep.SEPARATION_METHODS[method]}
     if method == "none":
         return Separation(np.zeros(T, bool), info, None)
     resid = start_residual(prob, lib, start)
+    em = em if not start else None
     if method == "em":
         # the learner alone: its flags, at its own (thinned) resolution
-        em = run_learner(prob, em_modes, max_points=em_points, seed=seed, resid=resid)
+        em = run_learner(prob, em_modes, max_points=em_points, seed=seed, resid=resid, previous=em)
         return Separation(em["p_disturbed"] > 0.5, {**info, **sep.em_summary(em)}, em)
     w0 = joint_weights(prob.r - lib.A @ lib.coef, prob.M)
     g0 = FoldGrams(lib.A, prob.r, np.ones(T, bool), prob.folds, W=lib.weights)
@@ -223,7 +231,7 @@ def separate_pushes(prob: Problem, lib: LibraryFit, selector, *, method: str, pu
     em = None
     if method == "auto" and disturbed.any():
         # as a gate the learner can only drop spans: with none scanned it is not needed
-        em = run_learner(prob, em_modes, max_points=em_points, seed=seed, resid=resid)
+        em = run_learner(prob, em_modes, max_points=em_points, seed=seed, resid=resid, previous=em)
         disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=scan["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)
