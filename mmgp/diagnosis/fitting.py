@@ -10,6 +10,7 @@ turns each chosen effect into a contract finding with its own held-out evidence.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,8 +64,9 @@ def cone_gram_fit(G: np.ndarray, c: np.ndarray, nonneg: np.ndarray, cones=()) ->
 class PhysicsFit:
     """The chosen effects refitted: atoms ``S`` (indices into ``keys``) with coefficients
     ``coef`` (|S|,), bootstrap replicates ``boot`` (B, |S|) and their covariance ``cov``;
-    ``grams`` of ``A`` in ``ctx``; ``w`` (n,) joint weights; ``extra``: coefficients beyond the
-    atoms (the re-identified body's full parameter change, ``("pi", i)``)."""
+    ``grams`` of ``A`` in ``ctx``; ``w`` (n,) joint weights; ``weights`` (T, n) the robust sample
+    weights of the fit; ``extra``: coefficients beyond the atoms (the re-identified body's full
+    parameter change, ``("pi", i)``)."""
 
     ctx: Context
     keys: list
@@ -75,6 +77,7 @@ class PhysicsFit:
     coef: np.ndarray
     boot: np.ndarray
     w: np.ndarray
+    weights: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
 
     @property
@@ -94,7 +97,7 @@ class PhysicsFit:
         """A copy with the atoms' coefficients (and extra entries) taken from ``coef``."""
         new = np.array([coef.get(self.keys[i], v) for i, v in zip(self.S, self.coef)])
         extra = {k: v for k, v in coef.items() if k not in set(self.keys)}
-        return PhysicsFit(self.ctx, self.keys, self.A, self.grams, self.chosen, self.S, new, self.boot, self.w, extra)
+        return dataclasses.replace(self, coef=new, extra=extra)
 
 
 def constraints(effects, keys: list, S: list, ctx) -> tuple[np.ndarray, list]:
@@ -137,7 +140,7 @@ def fit_physics(prob, lib, grams: FoldGrams, chosen: list, w: np.ndarray, use: n
         grams = FoldGrams(A, prob.r, use, prob.folds, W=prob.M)
         coef = cone_gram_fit(*grams.normal_equations(S, w), nonneg, cones)
     boot = block_bootstrap(grams, S, w, nonneg, cones, seed=seed)
-    return PhysicsFit(ctx, keys, A, grams, list(chosen), S, coef, boot, w)
+    return PhysicsFit(ctx, keys, A, grams, list(chosen), S, coef, boot, w, lib.weights)
 
 
 def _flatten(params, prefix=()) -> dict:

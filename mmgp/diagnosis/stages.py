@@ -277,8 +277,11 @@ def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.
     rng = np.random.default_rng(seed)
     sq = np.zeros(ctx.n)
     hyper = None
+    # it learns where the robust fit trusted every joint's equation: a push the separation
+    # missed would otherwise become part of the function it predicts
+    trusted = use if phys.weights is None else use & (phys.weights.min(1) > 0.5)
     for k, (tr, te) in enumerate(prob.folds):
-        tr, te = tr[use[tr]], te[use[te]]
+        tr, te = tr[trusted[tr]], te[use[te]]
         th_k = phys.grams.fit(S, phys.w, k) if S else np.zeros(0)
         res_tr = r[tr] - (A[tr][:, :, S] @ th_k if S else 0)
         res_te = r[te] - (A[te][:, :, S] @ th_k if S else 0)
