@@ -255,7 +255,7 @@ def test_batched_outputs_equal_single_output_fits():
 
 
 # ---------------------------------------------------------------- scalable GP (mmgp.gp.sparse)
-from mmgp.gp.sparse import SparseGP, make_gp
+from mmgp.gp.sparse import EXACT_MAX_SAMPLES, SparseGP, make_gp
 
 
 def test_sparse_gp_with_all_inputs_inducing_equals_exact_gp():
@@ -302,8 +302,8 @@ def test_sparse_gp_matches_dense_sgpr_formulas_and_dtc_loo_refits():
 
 
 def test_make_gp_switches_at_threshold_and_sparse_fit_is_accurate():
-    assert type(make_gp(3000, n_inducing=50)) is ExactGP
-    assert type(make_gp(3001, n_inducing=50)) is SparseGP
+    assert type(make_gp(EXACT_MAX_SAMPLES, n_inducing=50)) is ExactGP
+    assert type(make_gp(EXACT_MAX_SAMPLES + 1, n_inducing=50)) is SparseGP
     assert type(make_gp(500, exact_threshold=100)) is SparseGP
     X, Y = toy(N=600, noise=0.05)
     Xq, Yq = toy(N=200, noise=0.0, seed=5)

@@ -2,8 +2,11 @@
 robots, the options several commands take, and progress display."""
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import typer
 
@@ -34,6 +37,9 @@ def _fail(exc: Exception) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+DEVICE_HELP = "torch device of the GPs: cpu (default), cuda, cuda:N or auto (cuda when there is one)."
+
+
 def _check_device(device: Optional[str]) -> None:
     from ..gp.linalg import resolve_device
 
@@ -43,6 +49,30 @@ def _check_device(device: Optional[str]) -> None:
         resolve_device(device)
     except (ValueError, RuntimeError) as exc:
         raise InputError(f"--device {device}: {exc}") from None
+
+
+def _stop_on_sigterm(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+@contextlib.contextmanager
+def command_numerics(device: Optional[str] = None) -> Iterator[None]:
+    """What every command computes under: the one thread policy (:mod:`mmgp.threads`: one thread,
+    large factorisations on idle cores), ``device`` as the default device of every GP built
+    inside (:func:`mmgp.gp.linalg.default_device`), and SIGTERM (``timeout``, schedulers) turned
+    into an ordinary exit, so an interrupted command removes its unfinished output folder."""
+    from ..gp.linalg import default_device
+    from ..threads import limit_threads
+
+    _check_device(device)
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm) if in_main else None
+    try:
+        with default_device(device), limit_threads(1):
+            yield
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _robot_for(log_path, robot: Optional[str], urdf: Optional[Path], n_joints: Optional[int] = None):

@@ -12,8 +12,8 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import (ProgressDisplay, SweepProgress, _fail, app, force_option, out_dir_option, quiet_option,
-                     seed_option, sweep_limit)
+from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, app, command_numerics, force_option,
+                     out_dir_option, quiet_option, seed_option, sweep_limit)
 
 
 def _modes(value: Optional[str]):
@@ -71,7 +71,7 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
                                                      help="Disturbance mode (default on)."),
           robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name."),
           urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot."),
-          device: Optional[str] = typer.Option(None, "--device", help="torch device: cpu, cuda, auto."),
+          device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
           seed: Optional[int] = seed_option(),
           force: bool = force_option(),
           quiet: bool = quiet_option()):
@@ -83,7 +83,7 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
     try:
         settings = load_settings(config, "train", MultimodalGP, n_modes=_modes(modes), disturbance=disturbance,
                                  robot=_robot_option(robot, urdf), device=device, seed=seed)
-        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
             model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
             model.fit(logs)
             _write_training_outputs(tmp, model)
@@ -92,11 +92,23 @@ def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet
     typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots, report.html.")
 
 
+def _check_model_device(model, model_dir: Path) -> None:
+    """A model trained on a device this machine lacks is refused with the way out."""
+    from ..gp.linalg import resolve_device
+
+    try:
+        resolve_device(model.device)
+    except ValueError:
+        raise InputError(f"the model was trained with device {model.device!r}, which this machine lacks: "
+                         "give --device cpu", file=model_dir) from None
+
+
 @app.command()
 def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp train'."),
             log: Path = typer.Argument(..., help="Log to predict (q, and dq/ddq or estimated)."),
             out: Path = typer.Option(..., "--out", help="Output Parquet file."),
             mode: int = typer.Option(0, "--mode", help="Mode to predict with (0 = nominal)."),
+            device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP + " Default: the model's."),
             force: bool = force_option()):
     """Predicted torque and its standard deviation per joint for a log."""
     import pandas as pd
@@ -108,13 +120,18 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
 
     try:
         model = MultimodalGP.load(model_dir)
+        if device is not None:
+            model.set_params(device=device)
+        else:
+            _check_model_device(model, model_dir)
         if out.exists() and not force:
             raise InputError("output exists (use --force to replace it)", file=out)
         if not 0 <= mode < model.n_modes_:
             raise InputError(f"--mode must be in 0..{model.n_modes_ - 1}")
         lg = complete_derivatives(read_log(log, n_joints=len(model.joint_names_)),
                                   SavitzkyGolay(window_s=model.diff_window_s, cv=True))
-        mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)
+        with command_numerics(device):
+            mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)
         cols = {"t": lg.t}
         for j in range(len(model.joint_names_)):
             cols[f"tau_hat_{j}"] = mean[:, j]

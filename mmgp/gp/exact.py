@@ -16,8 +16,7 @@ Fitting cost: L-BFGS-B (scipy) on hand-derived gradients (one K^-1 and one (N, N
 evaluation, see :func:`mmgp.gp.hyper.rbf_value_and_grad`), first on a small coarse subset, then on
 the fitting subset. On 2,000 real Barrett WAM samples (7 outputs, 21 inputs) this fits several
 times faster than scikit-learn's GaussianProcessRegressor at lower held-out error
-(benchmarks/bench_gp_speed.py). For more than a few thousand samples use
-``mmgp.gp.sparse.make_gp`` (SGPR above 3,000).
+(benchmarks/bench_gp_speed.py). ``mmgp.gp.sparse.make_gp`` picks this GP or SGPR by size and memory.
 """
 from __future__ import annotations
 
@@ -28,8 +27,13 @@ from sklearn.utils.validation import check_is_fitted
 
 from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets
 from .kernels import rbf_kernel
-from .linalg import DTYPE, LOG_2PI, inverse_from_cholesky, resolve_device, robust_cholesky
+from ..threads import threads_for_rows
+from .linalg import DTYPE, LOG_2PI, GPNumericalError, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
 from .objectives import loo_from_inverse
+
+#: kernel matrices of all outputs together up to this many bytes are factorised as one batch
+#: (m, N, N) (fast for the EM's small supports); larger ones one output at a time
+BATCHED_BYTES = 2 ** 28
 
 
 def check_xy(X, Y) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -52,8 +56,8 @@ class StandardisedRBFGP(BaseEstimator):
     """
 
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
-                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
-                 coarse_fit_points: int = 300):
+                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
+                 coarse_fit_points: int = 300, independent_outputs: bool = False):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -62,6 +66,7 @@ class StandardisedRBFGP(BaseEstimator):
         self.device = device
         self.seed = seed
         self.coarse_fit_points = coarse_fit_points
+        self.independent_outputs = independent_outputs
 
     def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
@@ -123,10 +128,18 @@ class ExactGP(StandardisedRBFGP):
         cost (Barrett WAM, 21 inputs: same held-out error as 60 full iterations, ~3x faster).
         0 disables it.
     noise_floor : smallest noise variance, as a fraction of each output's variance.
-    device : torch device ("cpu", "cuda", "auto").
+    independent_outputs : one optimiser run per output (see
+        :func:`mmgp.gp.hyper.optimise_hyper`); default False, one run over all outputs.
+    device : torch device ("cpu", "cuda", "auto"); None (default): the block's default
+        (:func:`mmgp.gp.linalg.default_device`), "cpu" outside one.
+
+    Memory: while the kernel matrices of all outputs take at most :data:`BATCHED_BYTES` they are
+    factorised together (m, N, N); larger fits keep one output's (N, N) factor at a time, made
+    when first predicted (``per_output_``), so an exact GP on 10^4+ samples needs O(N^2), not
+    O(m N^2), memory, and a fit that is only saved never pays the O(N^3).
 
     Learned: ``hyper_`` (standardised units), ``lengthscale_`` (m, d) and ``noise_std_`` (m,) in
-    data units, ``objective_value_`` (per-sample objective on the fitting subset).
+    data units, ``objective_value_`` (per-sample objective on the fitting subset), ``per_output_``.
     """
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "ExactGP":
@@ -136,12 +149,36 @@ class ExactGP(StandardisedRBFGP):
         return self
 
     def _condition(self, Xs: torch.Tensor, Ys: torch.Tensor) -> None:
+        self.Xs_, self.Ys_ = Xs, Ys
+        N, m = Ys.shape
+        self.per_output_ = m * N * N * 8 > BATCHED_BYTES
+        if self.per_output_:
+            # One output at a time, factorised when first predicted: memory O(N^2) instead of
+            # O(m N^2), and a model that is only saved (training) never pays the O(N^3).
+            if not exact_fits(N, self.dev_):
+                raise GPNumericalError(
+                    f"an exact GP on {N} samples needs {3 * N * N * 8 / 2 ** 30:.1f} GiB on {self.dev_}, more "
+                    "than is free: use the sparse GP (mmgp.gp.sparse.make_gp)")
+            self.L_, self.jitter_ = None, 0.0
+            self._alpha = [None] * m
+            return
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
-        K = rbf_kernel(Xs, Xs, ls, sf) + sn[:, None, None] * torch.eye(Xs.shape[0], dtype=DTYPE, device=self.dev_)
-        self.L_, self.jitter_ = robust_cholesky(K)
-        self.alpha_ = torch.cholesky_solve(Ys.T.unsqueeze(-1), self.L_).squeeze(-1)  # (m, N)
-        self.Xs_ = Xs
-        self.Ys_ = Ys
+        K = rbf_kernel(Xs, Xs, ls, sf) + sn[:, None, None] * torch.eye(N, dtype=DTYPE, device=self.dev_)
+        with threads_for_rows(N, self.dev_):
+            self.L_, self.jitter_ = robust_cholesky(K)
+            self.alpha_ = torch.cholesky_solve(Ys.T.unsqueeze(-1), self.L_).squeeze(-1)  # (m, N)
+
+    def _factor(self, j: int) -> torch.Tensor:
+        """Output j's Cholesky factor (N, N) (per-output mode); caches its weights K^-1 y."""
+        ls, sf, sn = self.hyper_.to_torch(self.dev_)
+        with threads_for_rows(self.Xs_.shape[0], self.dev_):
+            K = rbf_kernel(self.Xs_, self.Xs_, ls[j:j + 1], sf[j:j + 1])[0]
+            K.diagonal().add_(sn[j])
+            L, jitter = robust_cholesky(K)
+            del K
+            self._alpha[j] = torch.cholesky_solve(self.Ys_[:, j:j + 1], L)[:, 0]
+        self.jitter_ = max(self.jitter_, jitter)
+        return L
 
     def predict(self, X: np.ndarray, *, include_noise: bool = False, return_std: bool = True):
         """Posterior mean (M, m) and std (M, m) at X (M, d), in data units.
@@ -149,6 +186,12 @@ class ExactGP(StandardisedRBFGP):
         ``include_noise`` adds the observation noise (predictive of a new measurement).
         """
         Xq = self._query(X)
+        with threads_for_rows(self.Xs_.shape[0], self.dev_):
+            if self.per_output_:
+                return self._predict_per_output(Xq, include_noise, return_std)
+            return self._predict_batched(Xq, include_noise, return_std)
+
+    def _predict_batched(self, Xq: torch.Tensor, include_noise: bool, return_std: bool):
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         mean_s, var_s = [], []
         # chunks keep each (m, N, chunk) buffer near 32 MB: prediction memory stays O(N m)
@@ -164,8 +207,37 @@ class ExactGP(StandardisedRBFGP):
                 var_s.append(var.T)
         return self._data_units(torch.cat(mean_s), torch.cat(var_s) if return_std else None)
 
+    def _predict_per_output(self, Xq: torch.Tensor, include_noise: bool, return_std: bool):
+        ls, sf, sn = self.hyper_.to_torch(self.dev_)
+        N = self.Xs_.shape[0]
+        chunk_size = max(64, int(4e6 // N))
+        means, vars_ = [], []
+        for j in range(len(self._alpha)):
+            L = self._factor(j) if (return_std or self._alpha[j] is None) else None
+            m_j, v_j = [], []
+            for chunk in torch.split(Xq, chunk_size):
+                Ks = rbf_kernel(self.Xs_, chunk, ls[j:j + 1], sf[j:j + 1])[0]          # (N, Q)
+                m_j.append(Ks.T @ self._alpha[j])
+                if return_std:
+                    V = torch.linalg.solve_triangular(L, Ks, upper=False)
+                    v_j.append((sf[j] - (V * V).sum(0)).clamp_min(1e-12) + (sn[j] if include_noise else 0.0))
+            del L
+            means.append(torch.cat(m_j))
+            if return_std:
+                vars_.append(torch.cat(v_j))
+        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1) if return_std else None)
+
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """Leave-one-out predictive mean and std (N, m) of the training outputs (closed form)."""
         check_is_fitted(self, "hyper_")
-        mu, var = loo_from_inverse(inverse_from_cholesky(self.L_), self.Ys_.T)
-        return self._data_units(mu.T, var.T)
+        if not self.per_output_:
+            mu, var = loo_from_inverse(inverse_from_cholesky(self.L_), self.Ys_.T)
+            return self._data_units(mu.T, var.T)
+        mus, vars_ = [], []
+        for j in range(len(self._alpha)):
+            Kinv = inverse_from_cholesky(self._factor(j))
+            mu, var = loo_from_inverse(Kinv[None], self.Ys_[:, j][None])
+            del Kinv
+            mus.append(mu[0])
+            vars_.append(var[0])
+        return self._data_units(torch.stack(mus, 1), torch.stack(vars_, 1))

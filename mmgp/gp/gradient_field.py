@@ -195,7 +195,7 @@ def fit_potential_hyper(X, Y, kernel, *, gradient_targets: bool, max_iter: int =
     # Matrices of a few thousand rows gain little from threads, and on a shared machine extra
     # threads oversubscribe the cores (measured 10x slower with 2 threads under load).
     best = maximise(partial(chained_value_and_grad, MARGINAL, gram, y), theta0, n=y.numel(), max_iter=max_iter,
-                    rows=y.numel(), single_thread_rows=3000, history=20)
+                    rows=y.numel(), history=20)
     theta = theta0 if best is None else best.theta
     # A torque that does not depend on a joint (a vertical first axis) drives its lengthscale
     # to overflow; 1e6 x the data spread is already constant to 1e-12 and keeps files finite.

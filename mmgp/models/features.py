@@ -82,9 +82,10 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
 
 
 def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-                   friction_sign: float | None = None, basis_kind: str | None = None) -> Features:
+                   friction_sign=None, basis_kind: str | None = None) -> Features:
     """GP inputs and targets at states q, dq, ddq and torques tau (T, n); ``friction_sign``
-    (+1 or -1) replaces the smooth sign input (prediction on one sliding branch)."""
+    (+1 or -1, or per sample (T, 1)) replaces the smooth sign input (prediction on one sliding
+    branch)."""
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.

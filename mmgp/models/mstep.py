@@ -15,6 +15,7 @@ import numpy as np
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
 from ..gp.linalg import LOG_2PI
+from ..gp.sparse import make_gp
 from ..gp.objectives import leave_block_out
 from ..gp.windowed import windowed_predictive
 from .hmm import _transition_counts
@@ -49,9 +50,9 @@ class ModeFitter:
 
     X (T, d) inputs, Y (T, n) torques; ``settings`` the sweep settings (``max_support``,
     ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
-    ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`); ``t_axis`` (T,) one increasing time
-    axis over all logs (enables the leave-window-out likelihood); ``basis`` (T, n, p) optional
-    regressors of a robust linear mean under the GP.
+    ``gp_method``, ``n_inducing``, ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`);
+    ``t_axis`` (T,) one increasing time axis over all logs (enables the leave-window-out
+    likelihood); ``basis`` (T, n, p) optional regressors of a robust linear mean under the GP.
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, settings, *, t_axis: np.ndarray | None = None,
@@ -63,6 +64,18 @@ class ModeFitter:
         kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed)
         kw.update(s.gp_kwargs)
         return ExactGP(**kw)
+
+    def final_gp(self, members: np.ndarray, Y: np.ndarray, hyper: Hyper | None):
+        """The GP a mode is returned with: conditioned on ``members`` of targets Y (T, n); exact
+        or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``). ``hyper`` None: the GP fits
+        its own (its standard procedure on ``fit_points`` random members, one optimiser run
+        per output)."""
+        s = self.settings
+        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed, n_inducing=s.n_inducing,
+                  n_subset=s.n_inducing, independent_outputs=True)
+        kw.update(s.gp_kwargs)
+        gp = make_gp(len(members), method=s.gp_method, **kw)
+        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None)
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``."""

@@ -41,6 +41,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import chain_matrix, e_step
 from .mstep import ModeFitter, SweepParams, mode_emissions, update_parameters
@@ -66,7 +67,10 @@ class MultimodalSEM:
     max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
         (random subset; the others are predicted out of sample): each sweep costs
         O(max_support^2 * T) per joint.
-    final_support : the returned GPs (used by predict/export) condition on up to this many.
+    final_support : the returned GPs (used by predict/export) condition on up to this many of
+        their mode's undisturbed samples (random subset); None: every one.
+    gp_method, n_inducing : the returned GPs' kind (:func:`mmgp.gp.sparse.make_gp`: "auto",
+        "exact", "sgpr", "subset") and SGPR inducing inputs.
     fit_points, fit_iter : hyperparameter fitting subset size and L-BFGS iterations.
     exclusion_s, block_s : leave-window-out radius of the E-step likelihood and the block length
         of the hyperparameter objective, seconds (need ``t`` in ``fit``).
@@ -81,7 +85,7 @@ class MultimodalSEM:
                  stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
                  tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
                  max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
-                 final_support: int = 2000,
+                 final_support: int | None = 2000, gp_method: str = "auto", n_inducing: int = 2000,
                  exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0,
                  calibrate: bool = True, shared_basis: bool = False, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
@@ -100,6 +104,8 @@ class MultimodalSEM:
         self.average_last = average_last
         self.max_support = max_support
         self.final_support = final_support
+        self.gp_method = gp_method
+        self.n_inducing = n_inducing
         self.fit_points = fit_points
         self.fit_iter = fit_iter
         self.exclusion_s = exclusion_s
@@ -113,7 +119,8 @@ class MultimodalSEM:
 
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
-            init_states: np.ndarray | None = None, basis: np.ndarray | None = None) -> "MultimodalSEM":
+            init_states: np.ndarray | None = None, basis: np.ndarray | None = None,
+            sweeps: bool | None = None) -> "MultimodalSEM":
         """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
         (T, n, p): optional per-output linear regressors (e.g. the rigid-body inertial-parameter
@@ -124,21 +131,41 @@ class MultimodalSEM:
         ``trace_`` (list of SweepRecord), ``converged_``, ``n_sweeps_``, ``timings_``,
         ``coef_`` (K basis coefficient arrays (n, p), or None each), ``basis_rank_``, and
         ``last_sweep_`` (the last sweep's per-mode means/variances (T, n), log-likelihoods (T, S),
-        calibration, sigma_d and states: for diagnosing where errors sit). Mode order in
-        ``last_sweep_`` is the sweep's internal one, not the final nominal-first order.
-        """
-        import torch
+        calibration, sigma_d and states: for diagnosing where errors sit; None without sweeps).
+        Mode order in ``last_sweep_`` is the sweep's internal one, not the final nominal-first
+        order.
 
-        # Each sweep is many small factorisations; with several threads, OpenMP spin-waiting
-        # made them 10-100x slower whenever another process competed for the cores (a 5,000
-        # sample 7-DOF sweep: 50-90 s on two threads under load, 3-7 s on one), and one thread
-        # loses little when the machine is idle.
-        prev_threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
+        One mode without the disturbance mode has no labels to learn: no sweeps are run
+        (``n_sweeps_`` 0, ``trace_`` empty); one GP is fitted on every sample (:meth:`_fit_single`).
+        ``sweeps=True`` runs them anyway (their log marginal scores K = 1 against K > 1).
+        """
+        if sweeps is None:
+            sweeps = not (self.n_modes == 1 and not self.disturbance and init_states is None)
+        if not sweeps:
+            return self._fit_single(X, Y, t=t, starts=starts, basis=basis)
+        # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
+        with limit_threads(1):
             return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis)
-        finally:
-            torch.set_num_threads(prev_threads)
+
+    def _fit_single(self, X, Y, *, t, starts, basis=None) -> "MultimodalSEM":
+        """One GP on every sample, by :func:`mmgp.gp.sparse.make_gp`, hyperparameters by its own
+        procedure (``objective`` on ``fit_points`` random samples)."""
+        t0 = time.perf_counter()
+        fitter, _ = self._prepare(X, Y, t, starts, basis)
+        T, n = fitter.Y.shape
+        self.labels_ = np.zeros(T, int)
+        self.p_mode_ = np.ones((T, 1))
+        self.p_disturbed_ = np.zeros(T)
+        self.disturbed_ = np.zeros(T, bool)
+        self.sigma_d_ = np.zeros(n)
+        self.stay_prob_ = 1.0
+        self.p_enter_ = self.p_leave_ = 0.0
+        self.trace_, self.converged_, self.n_sweeps_, self.last_sweep_ = [], True, 0, None
+        self.log_marginal_ = float("nan")
+        self._final_gps(fitter, [0], [None], np.random.default_rng(self.seed))
+        total = time.perf_counter() - t0
+        self.timings_ = {"init_s": 0.0, "gp_s": total, "estep_s": 0.0, "total_s": total}
+        return self
 
     def _fit(self, X, Y, *, t, starts, init_states, basis=None) -> "MultimodalSEM":
         t0 = time.perf_counter()
@@ -295,10 +322,9 @@ class MultimodalSEM:
                 coef = fitter.basis_coefficients(members)
                 Yk = Y - np.einsum("tjp,jp->tj", fitter.basis, coef)
             self.coef_.append(coef)
-            if len(members) > self.final_support:
+            if self.final_support is not None and len(members) > self.final_support:
                 members = np.sort(rng.choice(members, self.final_support, replace=False))
-            gp = fitter.new_gp().fit(X[members], Yk[members], hyper=hypers[k], optimise=False)
-            self.gps_.append(gp)
+            self.gps_.append(fitter.final_gp(members, Yk, hypers[k]))
             self.support_X_.append(X[members])
             self.support_Y_.append(Yk[members])
 
@@ -328,7 +354,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     d = np.asarray(X).shape[1]
     scores, models = {}, {}
     for K in candidates:
-        m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, t=t, starts=starts, basis=basis)
+        m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, t=t, starts=starts, basis=basis, sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         models[K] = m
     best = max(scores, key=scores.get)
