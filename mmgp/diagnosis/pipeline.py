@@ -195,6 +195,7 @@ class Diagnoser(BaseEstimator):
         # (on a busy 2-core machine a 21000 x 90 Gram took 1-3 s threaded and 0.03 s on one thread)
         with threadpool_limits(limits=1, user_api="blas"):
             res = self._diagnose(log, robot)
+        res = _checked(res, log, robot)
         self.result_ = res
         self.findings_, self.fit_stages_, self.location_ = res.findings, res.fit, res.location
         self.labels_, self.info_ = res.labels, res.info
@@ -360,6 +361,18 @@ def _disturbance(pushes, t: np.ndarray) -> dict:
         p = pushes.em["p_disturbed"]
         evidence["em_p_disturbed_max_per_span"] = [float(p[a:b].max()) for a, b in runs(pushes.disturbed)][:50]
     return disturbance_finding(pushes.disturbed, spans_of(pushes.disturbed, t), evidence)
+
+
+def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
+    """``res`` with what fails the plausibility checks (``plausibility.check``) withheld and
+    the warnings in words."""
+    from ..physics.context import pin_model
+    from .plausibility import check
+
+    dq_logged = log.dq is not None and not getattr(log, "dq_estimated", False)
+    kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot), q=log.q, dq=log.dq,
+                                     t=log.t, dq_logged=dq_logged)
+    return dataclasses.replace(res, findings=kept, withheld=withheld, warnings=warnings)
 
 
 def _read(log, robot):

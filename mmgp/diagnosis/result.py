@@ -2,6 +2,7 @@
 the residual concentrates, a Markdown report and residual plots."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -95,9 +96,12 @@ class DiagnosisResult:
     info: dict = field(default_factory=dict)
     plot_data: dict | None = field(default=None, repr=False)
     labels: dict | None = field(default=None, repr=False)
+    warnings: list = field(default_factory=list)
+    withheld: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"findings": self.findings, "fit": self.fit, "location": self.location, "info": self.info}
+        return {"findings": self.findings, "warnings": self.warnings, "withheld_findings": self.withheld,
+                "fit": self.fit, "location": self.location, "info": self.info}
 
     def to_json(self, indent: int = 2) -> str:
         return json.dumps(jsonable(self.to_dict()), indent=indent)
@@ -105,7 +109,12 @@ class DiagnosisResult:
     def report_markdown(self) -> str:
         effects = [f for f in self.findings if f["effect"] not in WHOLE_LOG]
         lines = ["# Sim-vs-real diagnosis", ""]
-        if not effects:
+        if self.warnings:
+            lines += ["## Warnings", ""] + [f"- **{w}**" for w in self.warnings]
+            lines += [f"- withheld: {f['explanation']} ({f['withheld_because']})" for f in self.withheld] + [""]
+        if not effects and self.warnings:
+            lines.append("No finding is reported: the warnings above say why the numbers cannot be trusted.")
+        elif not effects:
             lines.append("Nothing is missing: no candidate effect improves the held-out (time-block "
                          "cross-validated) error significantly over the nominal model.")
             lines += [""] * bool(self.findings) + [f"- {f['explanation']}" for f in self.findings]
@@ -139,8 +148,7 @@ class DiagnosisResult:
         out.mkdir(parents=True, exist_ok=True)
         doc = self
         if self.plot_data is not None:
-            doc = DiagnosisResult(self.findings, self.fit, self.location, self.joint_names,
-                                  {**self.info, "plots": plot_residuals(self.plot_data, out)})
+            doc = dataclasses.replace(self, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
         (out / "findings.json").write_text(doc.to_json())
         if self.labels is not None:
             import pandas as pd
