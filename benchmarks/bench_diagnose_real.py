@@ -37,8 +37,9 @@ GAZ_A = np.array([0.54615, 0.87224, 0.64068, 1.2794, 0.83904, 0.30301, 0.56489])
 def convert_log(name: str, tmp: Path) -> Path:
     from mmgp.convert import convert
 
-    (path,) = convert(ROOT / LOGS[name], tmp / f"{LOGS[name]}.parquet")
-    return path
+    # the converter also writes the files a log names beside it (the TX40's URDF)
+    return next(Path(p) for p in convert(ROOT / LOGS[name], tmp / f"{LOGS[name]}.parquet")
+                if str(p).endswith(".parquet"))
 
 
 def peer_errors(d: Diagnoser, log, robot) -> dict:

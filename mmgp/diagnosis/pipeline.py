@@ -241,6 +241,9 @@ class Diagnoser(BaseEstimator):
             near = near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)
             (prob, body), use = st.with_modes(prob, ms), ~pushes.disturbed & ~near
             phys, selector, dropped, rb_ev = self._select(prob, st.fit_library(prob, phys.ctx, use), use, start + body)
+            if pushes.disturbed.any():
+                pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
+                use = ~pushes.disturbed & ~near
             laps("reselect_s")
         findings = effect_findings(phys, alpha=self.alpha)
         for f in findings:
@@ -346,13 +349,33 @@ class Diagnoser(BaseEstimator):
         plot = None
         if self.plots:
             plot = {"q": ctx.q[use], "dq": ctx.dq[use], "tau": prob.tau[use], "r_before": prob.r[use],
-                    "r_after": phys.residual(prob.r)[use], "joint_names": ctx.joint_names}
+                    "r_after": phys.residual(prob.r)[use], **dict(zip(("friction", "friction_law"), (f[use] for f in _friction_torque(phys)))),
+                    "joint_names": ctx.joint_names}
         labels = None
         if pushes.disturbed.any() or ms is not None:
             labels = {"t": t.copy(), "mode": (ms.labels if ms is not None else np.zeros(len(t), int)).astype(int),
                       "disturbed": pushes.disturbed.astype(int)}
         return DiagnosisResult(findings=findings, fit=fit, location=loc, joint_names=ctx.joint_names, info=info,
                                plot_data=plot, labels=labels)
+
+
+FRICTION = ("coulomb_friction", "viscous_friction", "load_dependent_friction")
+
+
+def _friction_torque(phys) -> tuple[np.ndarray, np.ndarray]:
+    """(T, n) the fitted friction laws' torque, N*m: low-passed like the residual, and as the
+    laws themselves (unfiltered, to draw against velocity)."""
+    from ..physics.effects import build_atoms
+    from .selection import atom_indices
+
+    chosen = [e for e in phys.chosen if e.name in FRICTION]
+    if not chosen:
+        return np.zeros(phys.A.shape[:2]), np.zeros(phys.A.shape[:2])
+    coef = phys.coefficients()
+    S = atom_indices(chosen, {a: i for i, a in enumerate(phys.keys)})
+    keys, A = build_atoms(chosen, phys.ctx)
+    return (phys.A[:, :, S] @ np.array([coef[phys.keys[i]] for i in S]),
+            A @ np.array([coef.get(k, 0.0) for k in keys]))
 
 
 def _disturbance(pushes, t: np.ndarray) -> dict:

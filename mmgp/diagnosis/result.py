@@ -157,7 +157,39 @@ class DiagnosisResult:
 
             write_table(out / "labels.parquet", pd.DataFrame(self.labels))
         (out / "report.md").write_text(doc.report_markdown())
+        doc.report_html(out)
         return out
+
+    def report_html(self, out: Path) -> Path:
+        """``out/report.html``: warnings, findings with their intervals, the held-out error per
+        stage and joint, the plots (PNGs already in ``out``) and the JSON, on one page."""
+        from ..evaluation.html import HtmlReport
+
+        page = HtmlReport("mmgp diagnose", subtitle=f"{self.info.get('n_samples')} samples analysed")
+        if self.warnings:
+            page.section("Warnings", "The numbers below cannot be trusted as they stand:")
+            page.table(["warning"], [[w] for w in self.warnings], kind="warnings")
+            if self.withheld:
+                page.table(["withheld finding", "because"],
+                           [[f["explanation"], f["withheld_because"]] for f in self.withheld], kind="withheld")
+        page.section("Findings", None if self.findings else "Nothing is missing from the nominal model.")
+        rows = [[f["effect"], f.get("joint") or f.get("link"), f["explanation"],
+                 json.dumps(jsonable(f.get("evidence", {}).get("params_interval")))] for f in self.findings]
+        page.table(["effect", "where", "explanation", "interval"], rows, kind="findings")
+        stages = [s for s in STAGES if s in self.fit]
+        page.section("Held-out normalised MSE per joint", "Time-block cross-validation; 0 is perfect, 1 is as good "
+                                                          "as the torque's mean.")
+        page.table(["joint"] + stages, [[j] + [self.fit[s]["nmse"].get(j) for s in stages] for j in self.joint_names],
+                   kind="nmse")
+        plots = self.info.get("plots") or []
+        if plots:
+            page.section("Residuals", "Per joint: residual against velocity, position and torque before and "
+                                      "after the found effects; the fitted friction law in red over what the "
+                                      "rest of the model leaves.")
+            for name in plots:
+                page.figure(out / name)
+        page.section("Summary").json(self.to_dict(), "findings")
+        return page.write(out / "report.html")
 
 
 def plot_residuals(d: dict, out: Path) -> list[str]:
@@ -172,11 +204,20 @@ def plot_residuals(d: dict, out: Path) -> list[str]:
     idx = np.linspace(0, T - 1, min(T, 3000)).astype(int)
     for j, jn in enumerate(d["joint_names"]):
         fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharey="row")
+        fr = d.get("friction")
         for row, (res, lab) in enumerate(((d["r_before"], "nominal"), (d["r_after"], "with physics"))):
             for col, (x, xl) in enumerate(((d["dq"], "dq [rad/s]"), (d["q"], "q [rad]"), (d["tau"], "tau [N*m]"))):
                 ax = axes[row, col]
                 ax.plot(x[idx, j], res[idx, j], ".", ms=1.5, alpha=0.5, rasterized=True)
                 ax.axhline(0, color="k", lw=0.5)
+                if row == 1 and col == 0 and fr is not None and np.any(fr[:, j]):
+                    # what friction must explain (the rest of the model removed) and the law fitted to it
+                    ax.plot(x[idx, j], res[idx, j] + fr[idx, j], ".", ms=1.0, color="0.6", alpha=0.4,
+                            rasterized=True)
+                    order = idx[np.argsort(x[idx, j])]
+                    ax.plot(x[order, j], d["friction_law"][order, j], "-", color="tab:red", lw=1.2,
+                            label="fitted friction")
+                    ax.legend(loc="upper left", fontsize=7)
                 ax.set_xlabel(xl)
                 if col == 0:
                     ax.set_ylabel(f"residual, {lab} [N*m]")

@@ -279,7 +279,10 @@ def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.
     hyper = None
     # it learns where the robust fit trusted every joint's equation: a push the separation
     # missed would otherwise become part of the function it predicts
-    trusted = use if phys.weights is None else use & (phys.weights.min(1) > 0.5)
+    # (a joint's equation left out at rest carries weight zero and does not count)
+    trusted = use if phys.weights is None else use & np.all((phys.weights > 0.5) | (M == 0), axis=1)
+    if any(trusted[tr].sum() < 10 for tr, _ in prob.folds):
+        trusted = use
     for k, (tr, te) in enumerate(prob.folds):
         tr, te = tr[trusted[tr]], te[use[te]]
         th_k = phys.grams.fit(S, phys.w, k) if S else np.zeros(0)
@@ -322,6 +325,21 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
         disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=scan["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)
+
+
+def confirm_pushes(prob: Problem, phys: PhysicsFit, previous: Separation, near: np.ndarray, *,
+                   push_alpha: float) -> Separation:
+    """The pushes ``previous`` found, each span kept only where the final model's residual
+    (the modes' own bodies in it) still shows it: a stretch that one mode's point-mass payload
+    left unexplained but the mode's body explains was not a push. ``near`` (T,) bool: samples
+    within a filter memory of a mode switch (left out of the scan)."""
+    valid = (prob.M > 0) & ~near[:, None]
+    flagged, scan = sep.scan_disturbances(phys.residual(prob.r), prob.t, f_c=prob.f_c, valid=valid, alpha=push_alpha)
+    kept = np.zeros_like(previous.disturbed)
+    for a, b in sep.runs(previous.disturbed):
+        kept[a:b] = flagged[a:b].any()
+    dropped = len(sep.runs(previous.disturbed)) - len(sep.runs(kept))
+    return Separation(kept, {**previous.info, "spans_explained_by_final_model": dropped}, previous.em)
 
 
 def raw_residual(prob: Problem, phys: PhysicsFit) -> np.ndarray:
