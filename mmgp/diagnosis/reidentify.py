@@ -31,10 +31,13 @@ def rigid_body(library) -> list:
 def reidentify(prob, lib, *, alpha: float, min_gain: float) -> tuple[list, dict]:
     """Whether the rigid body is re-identified: the paired held-out gain over the time blocks
     of the whole library plus the base parameters against the whole library alone (robust
-    weights: pushes carry none), one-sided signed-rank test at level ``alpha``, and a gain of at
-    least ``min_gain`` of the nominal model's held-out error: the body must account for a
-    material part of the mismatch (a derivative estimate's small bias, or a payload's point-mass
-    inertia linearised a little off, is consistent over blocks but is not a different body).
+    weights: pushes carry none), one-sided signed-rank test at level ``alpha`` over the number
+    of candidates (as any candidate of a selection step), and a gain of at least ``min_gain`` of
+    the held-out error the library alone leaves: the body must account for a material part of
+    what is left. Measured against the nominal error instead, a real arm's body is never
+    material: the library's springs, offsets and payload mimic most of an inertial mismatch
+    (real Panda: library alone 0.6% of the nominal error, with the body 0.14-0.3%). The payload
+    links are not part of the body (``stages.rigid_regressor``), so a payload stays a payload.
     Returns (the effects the selection starts from, evidence)."""
     rb = rigid_body(prob.library)
     if not rb:
@@ -47,21 +50,24 @@ def reidentify(prob, lib, *, alpha: float, min_gain: float) -> tuple[list, dict]
     w = joint_weights(prob.r - lib.A @ lib.coef, prob.M)
     grams = FoldGrams(lib.A, prob.r, np.ones(len(prob.t), bool), prob.folds, W=lib.weights)
     e0, e1 = grams.cv_errors(rest, w) @ w, grams.cv_errors(full, w) @ w
-    e_nom = grams.cv_errors([], w) @ w
-    p, gain = signed_rank_p(e0 - e1), float((e0.sum() - e1.sum()) / max(e_nom.sum(), 1e-300))
-    take = p < alpha and gain >= min_gain
+    # tried as one more candidate of the selection's first step: the same family-wise level
+    level = alpha / max(len(prob.library), 1)
+    p, gain = signed_rank_p(e0 - e1), float((e0.sum() - e1.sum()) / max(e0.sum(), 1e-300))
+    take = p < level and gain >= min_gain
     ev = {"p_value": p, "held_out_gain": gain, "min_gain": min_gain, "re_identified": bool(take),
           "n_base_parameters": rb[0].base.n_base,
           "criterion": f"{grams.K}-fold time-block CV of the whole effect library with and without the base "
-                       f"parameters, one-sided Wilcoxon signed-rank test at level {alpha:g} and a held-out gain "
-                       f">= {min_gain:g} of the nominal model's held-out error"}
+                       f"parameters, one-sided Wilcoxon signed-rank test at level {level:.3g} (Bonferroni over the "
+                       f"library's candidates) and a held-out gain >= {min_gain:g} of what the library leaves"}
     return (rb if take else []), ev
 
 
 def _weighted_system(prob, ctx, A_e: np.ndarray, use: np.ndarray, w: np.ndarray):
     """Normal equations (G, c) of the full regressor (low-passed) next to effect columns ``A_e``
     (T, n, p), over valid equations of samples ``use`` with joint weights ``w``."""
-    Y = prob.lowpass(ctx.regressor)
+    from .stages import rigid_regressor
+
+    Y = prob.lowpass(rigid_regressor(ctx.regressor, prob.library))
     X = np.concatenate([Y, A_e], axis=2)[use]
     sw = np.sqrt(prob.M[use] * w[None, :])
     Xw = (X * sw[:, :, None]).reshape(-1, X.shape[2])

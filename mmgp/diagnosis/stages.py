@@ -100,14 +100,29 @@ def build_problem(log: RobotLog, robot, n_samples_in_log: int, smear_s: float, *
                  [str(pin_model(robot).names[j]) for j in range(1, q.shape[1] + 1)])
     vs = smooth_sign_scale(dq, k=sign_noise_factor)
     ctx = build_context(robot, q, dq, log.ddq, v_s=vs, joint_names=names)
+    library = effect_library(ctx, effects=effects, payload_links=payload_links)
     if any(cls.scope == "model" for cls in effect_classes(effects)):
-        ctx = ctx.with_base(base_parameters(ctx.regressor, ctx.link_names))
+        Y = rigid_regressor(ctx.regressor, library)
+        ctx = ctx.with_base(base_parameters(Y, ctx.link_names))
+        library = effect_library(ctx, effects=effects, payload_links=payload_links)
     r_raw = log.tau - ctx.tau_rbd
     lp, f_c = lowpass_for(t, dq) if lowpass else (identity, None)
     return Problem(t=t, tau=log.tau, ctx=ctx, r_raw=r_raw, r=lp(r_raw), lowpass=lp, f_c=f_c,
                    M=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor), folds=time_folds(len(t), n_folds, t, f_c),
-                   library=effect_library(ctx, effects=effects, payload_links=payload_links),
+                   library=library,
                    n_samples_in_log=n_samples_in_log, smear_s=smear_s)
+
+
+def rigid_regressor(Y: np.ndarray, library) -> np.ndarray:
+    """The inertial regressor ``Y`` (T, n, 10 B) the re-identified body is made of: the links that
+    carry a payload candidate left out (zero columns). CONTRACT section 3 names a mass on the
+    distal link a ``payload``; were the body free there too, it would absorb every payload (and
+    on a log whose URDF is right, a payload is all it would find)."""
+    Y = Y.copy()
+    for e in library:
+        if e.name == "payload":
+            Y[:, :, 10 * e.index:10 * e.index + 10] = 0.0
+    return Y
 
 
 @dataclass(frozen=True)
