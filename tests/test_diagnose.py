@@ -200,14 +200,19 @@ def test_pushes_are_separated_before_fitting_friction(cases):
 
 
 def test_payload_modes_are_found_with_their_masses(cases):
-    """Payload of 0 kg / 1.5 kg switched on link 7 during the log: a mode_switch with both masses."""
+    """Payload of 0 kg / 1.5 kg switched on link 7 during the log: a mode_switch with both masses
+    and (CONTRACT section 3: a payload per mode when it switches) one payload finding, for the
+    mode that holds it; no push on a log without pushes."""
     spec, rec, truth = cases["panda_modes"]
     res, _ = _run(cases["panda_modes"])
     m = [x for x in res.findings_ if x["effect"] == "mode_switch"]
     assert len(m) == 1
     masses = sorted(pm["mass"] for pm in m[0]["params"]["per_mode"])
     assert masses[0] == pytest.approx(0.0, abs=0.1) and masses[1] == pytest.approx(1.5, rel=0.1)
-    assert not [x for x in res.findings_ if x["effect"] in ("payload", "external_disturbance")]
+    assert not [x for x in res.findings_ if x["effect"] == "external_disturbance"]
+    (pay,) = [x for x in res.findings_ if x["effect"] == "payload"]
+    assert pay["link"] == "panda_link7" and pay["params"]["mass"] == pytest.approx(1.5, rel=0.1)
+    assert (res.labels_["mode"] == pay["mode"]).mean() == pytest.approx(np.mean(rec.labels["mode"] == 1), abs=0.1)
     # labels: the two-mode segmentation matches the simulator's modes on most samples
     lab = np.interp(res.labels_["t"], rec.t, rec.labels["mode"]).round()
     assert (res.labels_["mode"] == lab).mean() > 0.9

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..models.hmm import forward_backward, transition_matrix
+from ..physics.effects import Effect
 from ..models.robust import solve_gram
 from .selection import signed_rank_p, time_folds
 
@@ -35,12 +36,15 @@ def _loglik(C, e, Wv, th) -> np.ndarray:
     return np.stack([-0.5 * (Wv * (e - C @ th[k]) ** 2).sum(1) for k in range(2)], 1)
 
 
-def _fit_switching(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, n_iter: int = 25):
+def _fit_switching(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, n_iter: int = 25,
+                   init: np.ndarray | None = None):
     """EM for e_t = C_t theta_{s_t} + noise, s_t a sticky two-state Markov chain.
 
     ``C`` (T, n, p) columns, ``e`` (T, n) residual, ``w`` (n,) inverse noise variances, ``V``
     (T, n) sample weights. Returns (theta (2, p), stay probability, posterior (T, 2)). Started
-    from a split of the time axis at the median of windowed single-state fits' first coefficient.
+    from ``init`` (T,) 0/1 labels (the multimodal learner's modes: the inference ``mmgp train``
+    makes) or, without them (or with one mode only), from a split of the time axis at the median
+    of windowed single-state fits' first coefficient.
     """
     T, n, p = C.shape
     Wv = V * w[None, :]
@@ -50,12 +54,16 @@ def _fit_switching(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, n
     def wls(g):
         return solve_gram((g @ Gt).reshape(p, p), g @ ct)
 
-    # start: windowed fits of the first coefficient (the magnitude, e.g. the mass), split at their median
-    edges = np.linspace(0, T, 9).astype(int)
-    loc = np.array([wls(((np.arange(T) >= a) & (np.arange(T) < b)).astype(float))[0] for a, b in zip(edges[:-1], edges[1:])])
-    hi = np.zeros(T)
-    for (a, b), v in zip(zip(edges[:-1], edges[1:]), loc):
-        hi[a:b] = float(v > np.median(loc))
+    if init is not None and 0 < np.mean(init) < 1:
+        hi = np.asarray(init, dtype=float)
+    else:
+        # windowed fits of the first coefficient (the magnitude, e.g. the mass), split at their median
+        edges = np.linspace(0, T, 9).astype(int)
+        loc = np.array([wls(((np.arange(T) >= a) & (np.arange(T) < b)).astype(float))[0]
+                        for a, b in zip(edges[:-1], edges[1:])])
+        hi = np.zeros(T)
+        for (a, b), v in zip(zip(edges[:-1], edges[1:]), loc):
+            hi[a:b] = float(v > np.median(loc))
     post = np.stack([1 - hi, hi], 1)
     stay = 1 - 1.0 / max(T / 4, 2)
     th = np.zeros((2, p))
@@ -68,7 +76,8 @@ def _fit_switching(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, n
     return th, stay, post
 
 
-def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, folds, lag: int = 1) -> dict:
+def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray, folds, lag: int = 1,
+                     init: np.ndarray | None = None) -> dict:
     """Held-out comparison of one versus two modes for the effect with columns ``C`` (T, n, p).
 
     For each time-block fold both models are fitted on the training part; on the test block the
@@ -85,7 +94,7 @@ def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray,
     for tr, te in folds:
         th1 = _wls(C[tr], e[tr], Wv[tr])
         err1 = (Wv[te] * (e[te] - C[te] @ th1) ** 2).sum()
-        th2, stay, _ = _fit_switching(C[tr], e[tr], w, V[tr], n_iter=15)
+        th2, stay, _ = _fit_switching(C[tr], e[tr], w, V[tr], n_iter=15, init=None if init is None else init[tr])
         P = transition_matrix(2, stay)
         alpha, _, _ = forward_backward(_loglik(C[te], e[te], Wv[te], th2), P, _EVEN)
         pred = np.full((len(te), 2), 0.5)
@@ -94,7 +103,7 @@ def mode_switch_test(C: np.ndarray, e: np.ndarray, w: np.ndarray, V: np.ndarray,
         mu = pred[:, 0, None] * (C[te] @ th2[0]) + pred[:, 1, None] * (C[te] @ th2[1])
         d.append(err1 - (Wv[te] * (e[te] - mu) ** 2).sum())
     d = np.array(d)
-    th, stay, post = _fit_switching(C, e, w, V)
+    th, stay, post = _fit_switching(C, e, w, V, init=init)
     return {"d": d, "p": signed_rank_p(d), "theta": th, "post": post, "stay": stay}
 
 
@@ -128,31 +137,82 @@ def _thinning(T: int, t: np.ndarray, f_c: float | None, max_samples: int) -> tup
     return step, lag
 
 
-def _screen(cands, e_all, w, M, idx) -> list:
+def _screen(cands, e_all, w, M, idx, init=None) -> list:
     """Two-mode fit of every candidate on all (thinned) samples: in-sample gain over one mode."""
     Wv = M[idx] * w[None, :]
     out = []
     for eff, C in cands:
         Cm, em = C[idx], e_all[idx]
         th1 = _wls(Cm, em, Wv)
-        th2, _, post = _fit_switching(Cm, em, w, M[idx], n_iter=10)
+        th2, _, post = _fit_switching(Cm, em, w, M[idx], n_iter=10, init=init)
         mu = post[:, 0, None] * (Cm @ th2[0]) + post[:, 1, None] * (Cm @ th2[1])
         out.append(((Wv * (em - Cm @ th1) ** 2).sum() - (Wv * (em - mu) ** 2).sum(), eff, C))
     return out
 
 
-def _admissible(eff, rm: dict, base: np.ndarray, ctx) -> bool:
-    """Both modes physically possible (e.g. masses non-negative, centres of mass within reach)."""
-    return all(eff.admissible(dict(zip(eff.atoms(), base + rm["theta"][k])), ctx) for k in range(2))
+#: a mode holds the effect when its held-out gain over none is significant and at least this
+#: share of the mode's held-out error without it (the materiality rule of ``reidentify``)
+MIN_MODE_GAIN = 0.05
+
+
+def _mode_presence(Gk: np.ndarray, ck: np.ndarray, yk: np.ndarray, nonneg, cones, alpha: float) -> np.ndarray:
+    """(2,) bool: whether each mode holds the effect. Per time block k, the mode's fit on the
+    other blocks against none (the effect at zero) on block k: the gain ``2 th.c_k - th'G_k th``
+    from the blocks' sums ``Gk`` (2, K, p, p), ``ck`` (2, K, p) and ``yk`` (2, K) (weighted
+    squares of the residual without the effect). A bootstrap interval alone would call a small
+    bias that is the same in every block (a point mass linearised a little off) a payload."""
+    from .fitting import cone_gram_fit
+
+    out = []
+    for m in range(2):
+        G, c = Gk[m].sum(0), ck[m].sum(0)
+        d = np.array([(lambda th: 2 * th @ ck[m, k] - th @ Gk[m, k] @ th)(
+            cone_gram_fit(G - Gk[m, k], c - ck[m, k], nonneg, cones)) for k in range(Gk.shape[1])])
+        out.append(signed_rank_p(d) < alpha and d.sum() >= MIN_MODE_GAIN * yk[m].sum())
+    return np.array(out)
+
+
+def _constrained_modes(eff, rm: dict, base: np.ndarray, C: np.ndarray, e: np.ndarray, w: np.ndarray,
+                       V: np.ndarray, ctx, folds, *, alpha: float, n_boot: int = 200, seed: int = 0):
+    """The two modes' coefficients refitted on their samples (posterior weights) with the
+    effect's constraints (a mode without payload has mass 0, not a slightly negative one), as
+    changes from ``base`` (2, p), block-bootstrap replicates of the modes' total coefficients
+    (n_boot, 2, p) over the time blocks of ``folds``, and (2,) bool whether each mode's magnitude
+    holds it (``_mode_presence`` at level ``alpha``); None when a mode is still not
+    physically possible (e.g. its centre of mass beyond the robot's reach)."""
+    from .fitting import cone_gram_fit, constraints
+
+    atoms = list(eff.atoms())
+    nonneg, cones = constraints([eff], atoms, list(range(len(atoms))), ctx)
+    y = e + C @ base  # the residual without the effect's one-mode fit
+    K = len(folds)
+    Gk = np.zeros((2, K, len(atoms), len(atoms)))
+    ck = np.zeros((2, K, len(atoms)))
+    yk = np.zeros((2, K))
+    for m in range(2):
+        Wv = V * w[None, :] * rm["post"][:, m, None]
+        for k, (_, te) in enumerate(folds):
+            Gk[m, k] = np.einsum("tj,tjp,tjq->pq", Wv[te], C[te], C[te])
+            ck[m, k] = np.einsum("tj,tjp,tj->p", Wv[te], C[te], y[te])
+            yk[m, k] = np.einsum("tj,tj->", Wv[te], y[te] ** 2)
+    total = np.array([cone_gram_fit(Gk[m].sum(0), ck[m].sum(0), nonneg, cones) for m in range(2)])
+    if not all(eff.admissible(dict(zip(atoms, total[m])), ctx) for m in range(2)):
+        return None
+    counts = np.random.default_rng(seed).multinomial(K, np.full(K, 1.0 / K), size=n_boot).astype(float)
+    boot = np.array([[cone_gram_fit(np.tensordot(c, Gk[m], 1), c @ ck[m], nonneg, cones) for m in range(2)]
+                     for c in counts])
+    return total - base, boot, _mode_presence(Gk, ck, yk, nonneg, cones, alpha)
 
 
 def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: np.ndarray, f_c: float | None,
-                     base_coef: dict, ctx, *, alpha: float, n_folds: int, max_samples: int) -> ModeSwitch | None:
+                     base_coef: dict, ctx, *, alpha: float, n_folds: int, max_samples: int,
+                     init: np.ndarray | None = None) -> ModeSwitch | None:
     """The mode switch the data supports, if any.
 
     ``cands``: list of (effect, columns (T, n, p)) that may switch; ``e_all`` (T, n) residual of
     the selected physics; ``w`` (n,) joint weights; ``M`` (T, n) valid equations; ``base_coef``
-    atom -> coefficient of the selected physics fit (an effect not in it has zeros). All
+    atom -> coefficient of the selected physics fit (an effect not in it has zeros); ``init``
+    (T,) 0/1 the multimodal learner's two modes, where the switching fits start. All
     candidates get an in-sample screen; the two with the largest gain get the held-out test at
     family-wise level ``alpha`` over every candidate.
     """
@@ -160,11 +220,17 @@ def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: 
     step, lag = _thinning(T, t, f_c, max_samples)
     idx = np.arange(0, T, step)
     folds = time_folds(len(idx), n_folds, t[idx], f_c)
-    tests = [(eff, C, mode_switch_test(C[idx], e_all[idx], w, M[idx], folds, lag=lag))
-             for _, eff, C in sorted(_screen(cands, e_all, w, M, idx), key=lambda x: -x[0])[:2]]
+    init = None if init is None else np.asarray(init)[idx]
+    tests = [(eff, C, mode_switch_test(C[idx], e_all[idx], w, M[idx], folds, lag=lag, init=init))
+             for _, eff, C in sorted(_screen(cands, e_all, w, M, idx, init), key=lambda x: -x[0])[:2]]
     base = {eff: np.array([base_coef.get(a, 0.0) for a in eff.atoms()]) for eff, _ in cands}
-    best = [(eff, rm) for eff, _, rm in tests
-            if rm["p"] < alpha / len(cands) and _admissible(eff, rm, base[eff], ctx)]
+    best = []
+    for eff, C, rm in tests:
+        if rm["p"] < alpha / len(cands):
+            fit = _constrained_modes(eff, rm, base[eff], C[idx], e_all[idx], w, M[idx], ctx, folds,
+                                     alpha=alpha / 2)
+            if fit is not None:
+                best.append((eff, {**rm, "theta": fit[0], "boot": fit[1], "present": fit[2]}))
     if not best:
         return None
     eff, rm = max(best, key=lambda x: x[1]["d"].mean())
@@ -180,15 +246,20 @@ def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: 
 
 def _mode_switch(eff, rm: dict, base: np.ndarray, ctx, t: np.ndarray, step: int, n_thin: int,
                  n_tested: int) -> ModeSwitch:
+    from .fitting import intervals
+
     T = len(t)
     lab = rm["post"].argmax(1)[np.minimum(np.round(np.arange(T) / step).astype(int), n_thin - 1)]
     order = np.argsort([(base + rm["theta"][k])[0] for k in range(2)])
     lab = np.argsort(order)[lab]
     theta = rm["theta"][order]
+    atoms = eff.atoms()
     per_mode = []
     for k in range(2):
-        params, _ = eff.params(dict(zip(eff.atoms(), base + theta[k])), {})
-        per_mode.append({**eff.report_params(params, ctx), "fraction": float((lab == k).mean())})
+        params, _ = eff.params(dict(zip(atoms, base + theta[k])), {})
+        reps = [dict(zip(atoms, b)) for b in rm["boot"][:, order[k]]]
+        per_mode.append({**eff.report_params(params, ctx), "fraction": float((lab == k).mean()),
+                         "interval": intervals(eff, reps, params), "present": bool(rm["present"][order[k]])})
     switches = [float(t[i]) for i in np.flatnonzero(np.diff(lab) != 0) + 1]
     return ModeSwitch(eff, lab, theta, base, per_mode, switches, rm, n_tested, step)
 
@@ -211,3 +282,31 @@ def near_switches(ms: ModeSwitch, t: np.ndarray, f_c: float | None, margin_s: fl
     for i in np.flatnonzero(np.diff(ms.labels) != 0) + 1:
         near[max(0, i - h - ms.step):i + h + ms.step] = True
     return near
+
+
+class ModeBody(Effect):
+    """What a found mode switch adds while the other effects are chosen again: the switching
+    link's ten inertial parameters (an attached body has its own inertia, which a point mass
+    lacks), one set per mode in ``modes``, each acting on that mode's samples (``labels``).
+    Not a contract effect (no name): the ``mode_switch`` and per-mode ``payload`` findings tell
+    it."""
+
+    scope = "mode"
+
+    def __init__(self, index: int, labels: np.ndarray, modes):
+        super().__init__(index)
+        self.labels = np.asarray(labels)
+        self.modes = list(modes)
+
+    def atoms(self):
+        return tuple(("mode", k, self.index, i) for k in self.modes for i in range(10))
+
+    def columns(self, ctx):
+        Y = ctx.link_regressor(self.index)
+        return [(self.labels == k)[:, None] * Y[:, :, i] for k in self.modes for i in range(10)]
+
+    def where(self, ctx):
+        return {"link": ctx.link_names[self.index]}
+
+    def affected_joints(self, ctx):
+        return list(range(self.index + 1))

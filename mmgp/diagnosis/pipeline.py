@@ -42,6 +42,7 @@ Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -50,8 +51,11 @@ from sklearn.base import BaseEstimator, clone
 
 from ..errors import InputError
 from . import stages as st
-from .result import DiagnosisResult, disturbance_finding, mode_switch_finding
-from .selection import FoldGrams, ForwardCVSelector
+from .fitting import effect_findings, fit_physics
+from .modes import near_switches
+from .reidentify import consistent_refit, model_torque, reidentify
+from .result import DiagnosisResult, disturbance_finding, mode_effect_findings, mode_switch_finding
+from .selection import FoldGrams, ForwardCVSelector, extend_nested, prune
 from .separation import SEPARATION_METHODS, runs, spans_of
 
 
@@ -89,7 +93,11 @@ class Diagnoser(BaseEstimator):
     n_folds: time blocks of the cross-validation (selection, uncertainty and the stage figures).
     alpha: family-wise significance level of the selection and of the mode-switch test.
     max_steps: at most this many effects (None: no limit).
-    payload_links: "auto" (links whose mass the trajectory can see) or 0-based link indices.
+    payload_links: "auto" (the most distal links, where the trajectory can see a mass: CONTRACT
+        section 3 names a mass elsewhere an inertial-parameter difference) or 0-based link indices.
+    reid_min_gain: the rigid body is re-identified (effect ``inertial_parameters``) when its base
+        parameters cut the whole library's held-out error significantly and by at least this
+        fraction.
     separate: how pushes are found: "auto" (robust scan gated by the learner), "scan" (the scan
         alone), "em" (the learner's flags alone) or "none".
     push_alpha: family-wise false-alarm level of the push scan over the log's independent samples.
@@ -120,7 +128,8 @@ class Diagnoser(BaseEstimator):
     """
 
     def __init__(self, effects=None, selector=None, differentiator=None, *, n_folds: int = 20, alpha: float = 0.05,
-                 max_steps: int | None = None, payload_links="auto", separate: str = "auto",
+                 max_steps: int | None = None, payload_links="auto", reid_min_gain: float = 0.05,
+                 separate: str = "auto",
                  push_alpha: float = 0.001, em_modes: int = 1, em_points: int = 500, em_gate_peak: float = 5.0,
                  rest_factor: float = 1.0, sign_noise_factor: float = 3.0, lowpass: bool = True,
                  max_samples: int = 6000, modes: bool = True, mode_folds: int = 10, mode_max_samples: int = 1000,
@@ -133,6 +142,7 @@ class Diagnoser(BaseEstimator):
         self.alpha = alpha
         self.max_steps = max_steps
         self.payload_links = payload_links
+        self.reid_min_gain = reid_min_gain
         self.separate = separate
         self.push_alpha = push_alpha
         self.em_modes = em_modes
@@ -185,6 +195,7 @@ class Diagnoser(BaseEstimator):
         # (on a busy 2-core machine a 21000 x 90 Gram took 1-3 s threaded and 0.03 s on one thread)
         with threadpool_limits(limits=1, user_api="blas"):
             res = self._diagnose(log, robot)
+        res = _checked(res, log, robot)
         self.result_ = res
         self.findings_, self.fit_stages_, self.location_ = res.findings, res.fit, res.location
         self.labels_, self.info_ = res.labels, res.info
@@ -207,34 +218,77 @@ class Diagnoser(BaseEstimator):
         prob = st.build_problem(log, robot, n_full, smear_s, effects=self.effects, payload_links=self.payload_links,
                                 n_folds=self.n_folds, **self._settings("sign_noise_factor", "lowpass", "rest_factor"))
         laps("context_s")
-        lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2)
         push_kw = self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed")
-        pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, **push_kw)
+        # the learner's push flags are where the robust fit starts: with many long pushes a fit
+        # that starts from least squares can settle where the pushes dragged it
+        em = st.run_learner(prob, self.em_modes, max_points=self.em_points, seed=self.seed) \
+            if self.separate != "none" else None
+        lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2,
+                             init=None if em is None else 1.0 - em["p_disturbed"])
+        start, reid = reidentify(prob, lib, alpha=self.alpha, min_gain=self.reid_min_gain)
+        laps("reidentify_s")
+        pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, em=em, **push_kw)
         use = ~pushes.disturbed
         if pushes.disturbed.any():
-            lib = st.fit_library(prob, lib.ctx, use)
+            lib = st.fit_library(prob, lib.ctx, use, init=None if em is None else 1.0 - em["p_disturbed"])
         laps("separate_s")
-        w = st.joint_weights((prob.r - lib.A @ lib.coef)[use], prob.M[use])
-        grams = FoldGrams(lib.A, prob.r, use, prob.folds, W=prob.M)
-        selector = self._selector().fit(prob.library, lib.keys, grams, w, lib.ctx)
+        phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
         laps("select_s")
-        phys = st.fit_physics(prob, lib, grams, selector.selected_, w, use)
-        findings = st.effect_findings(phys, alpha=self.alpha)
-        fit = self._stage_errors(prob, phys, use, laps)
         ms, pushes = self._mode_switch(prob, phys, pushes, laps)
         if ms is not None:
-            # the single effect on that index is the modes' average: the mode finding replaces it
-            where = ms.effect.where(phys.ctx)
-            findings = [f for f in findings if not (f["effect"] == ms.effect.name and
-                                                    all(f.get(k) == v for k, v in where.items()))]
+            # the modes explain their part: the other effects are chosen again on what they leave
+            # (samples within a filter memory of a switch mix both modes: left out)
+            near = near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)
+            (prob, body), use = st.with_modes(prob, ms), ~pushes.disturbed & ~near
+            phys, selector, dropped, rb_ev = self._select(prob, st.fit_library(prob, phys.ctx, use), use, start + body)
+            if pushes.disturbed.any():
+                pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
+                use = ~pushes.disturbed & ~near
+            laps("reselect_s")
+        findings = effect_findings(phys, alpha=self.alpha)
+        for f in findings:
+            if f["effect"] == "inertial_parameters":
+                f["evidence"].update(identifiability=rb_ev, reidentification=reid)
+        fit = self._stage_errors(prob, phys, use, laps)
+        if ms is not None:
+            findings += mode_effect_findings(ms, phys.ctx)
             findings.append(mode_switch_finding(ms, phys.ctx, alpha=self.alpha, n_folds=self.mode_folds))
         if pushes.disturbed.any():
             findings.append(_disturbance(pushes, prob.t))
-        return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps)
+        info = {"reidentification": reid, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
+                                                      for e, p in dropped]}
+        return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
+
+    def _select(self, prob, lib, use, start):
+        """Forward selection from ``start`` on samples ``use``, nested extensions (load
+        dependence of a found Coulomb friction), backward pruning of effects whose own held-out
+        gain is not significant, the refit; then once more with the load of load-dependent
+        friction taken from the fitted model. The rigid body, when re-identified, is refitted
+        physically consistent."""
+        ctx, keys, A = lib.ctx, lib.keys, lib.A
+        w = st.joint_weights((prob.r - lib.A @ lib.coef)[use], prob.M[use])
+        rounds = 2 if any(e.name == "load_dependent_friction" for e in prob.library) else 1
+        for k in range(rounds):
+            # robust weights of the whole library's fit: a push the separation missed does not
+            # decide which effect wins
+            grams = FoldGrams(A, prob.r, use, prob.folds, W=lib.weights)
+            selector = self._selector().fit(st.candidates(prob, start), keys, grams, w, ctx, start=start)
+            chosen = extend_nested(selector.selected_, prob.library, keys, grams, w, ctx, self.alpha)
+            chosen, dropped = prune(chosen, keys, grams, w, self.alpha)
+            phys = fit_physics(prob, st.LibraryFit(ctx, keys, A, lib.coef, lib.weights), grams, chosen, w, use,
+                               seed=self.seed)
+            if k + 1 < rounds:
+                ctx = phys.ctx.with_load(model_torque(prob, phys.ctx, chosen, phys.coefficients()))
+                keys, A = prob.atoms(ctx)
+                w = st.joint_weights(phys.residual(prob.r)[use], prob.M[use])
+        coef, rb_ev = consistent_refit(prob, phys, use)
+        if coef:
+            phys = phys.with_coefficients(coef)
+        return phys, selector, dropped, rb_ev
 
     def _stage_errors(self, prob, phys, use, laps) -> dict:
         denom = st.torque_variance(prob, use)
-        fit = st.stage_errors(phys, denom)
+        fit = st.stage_errors(prob, phys, use, denom)
         laps("fit_s")
         if self.gp:
             fit["with_physics_and_gp"] = st.gp_stage_errors(prob, phys, use, denom, points=self.gp_points,
@@ -254,15 +308,31 @@ class Diagnoser(BaseEstimator):
         cands = [(e, phys.A[:, :, [index[a] for a in e.atoms()]]) for e in prob.library if e.switchable]
         if not (self.modes and cands):
             return None, pushes
-        ms = find_mode_switch(cands, phys.residual(prob.r), phys.w, prob.M, prob.t, prob.f_c, phys.coefficients(),
-                              phys.ctx, alpha=self.alpha, n_folds=self.mode_folds, max_samples=self.mode_max_samples)
+        # the modes the multimodal learner (the inference `mmgp train` makes) sees in what the
+        # physics leaves: where the switching fits start, and the gate of the push re-scan
+        em = st.run_learner(prob, max(2, self.em_modes), max_points=self.em_points, seed=self.seed,
+                            previous=pushes.em, resid=st.raw_residual(prob, phys))
+        pushes = dataclasses.replace(pushes, em=em)
+        e, coef, ctx = phys.residual(prob.r), phys.coefficients(), phys.ctx
+        kw = dict(alpha=self.alpha, n_folds=self.mode_folds, max_samples=self.mode_max_samples)
+        ms = find_mode_switch(cands, e, phys.w, prob.M, prob.t, prob.f_c, coef, ctx, init=em["mode"], **kw)
+        if ms is not None and ms.effect.linearised:
+            # the point mass's inertia is linearised at one centre of mass for both modes: at the
+            # heavier mode's own (the lighter one's mass makes its part small), then refitted
+            eff, C0 = ms.effect, dict(cands)[ms.effect]
+            atoms = eff.atoms()
+            ctx = eff.relinearise(dict(zip(atoms, ms.base + ms.theta[1])), ctx)
+            C = prob.lowpass(np.stack(eff.columns(ctx), axis=2))
+            e = e + (C0 - C) @ ms.base
+            again = find_mode_switch([(eff, C)], e, phys.w, prob.M, prob.t, prob.f_c, coef, ctx, init=ms.labels, **kw)
+            ms = again or ms
         if ms is not None and self.separate in ("auto", "scan"):
             pushes = st.rescan_pushes(prob, ms, phys, pushes, method=self.separate,
                                       **self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed"))
         laps("modes_s")
         return ms, pushes
 
-    def _result(self, prob, phys, selector, pushes, ms, findings, fit, use, laps) -> DiagnosisResult:
+    def _result(self, prob, phys, selector, pushes, ms, findings, fit, use, laps, extra: dict) -> DiagnosisResult:
         from .location import locate
 
         ctx, t = phys.ctx, prob.t
@@ -274,11 +344,13 @@ class Diagnoser(BaseEstimator):
                 "selection_path": [{"effects": [f"{e.name}@{e.where(ctx)}" for e in p.effects[-1:]], "cv": p.cv_mean}
                                    for p in selector.path_],
                 "chosen_step": selector.chosen_step_,
-                "separation": {k: v for k, v in pushes.info.items() if k != "spans"}, "timings": laps.total()}
+                "separation": {k: v for k, v in pushes.info.items() if k != "spans"}, **extra,
+                "timings": laps.total()}
         plot = None
         if self.plots:
             plot = {"q": ctx.q[use], "dq": ctx.dq[use], "tau": prob.tau[use], "r_before": prob.r[use],
-                    "r_after": phys.residual(prob.r)[use], "joint_names": ctx.joint_names}
+                    "r_after": phys.residual(prob.r)[use], **dict(zip(("friction", "friction_law"), (f[use] for f in _friction_torque(phys)))),
+                    "joint_names": ctx.joint_names}
         labels = None
         if pushes.disturbed.any() or ms is not None:
             labels = {"t": t.copy(), "mode": (ms.labels if ms is not None else np.zeros(len(t), int)).astype(int),
@@ -287,12 +359,43 @@ class Diagnoser(BaseEstimator):
                                plot_data=plot, labels=labels)
 
 
+FRICTION = ("coulomb_friction", "viscous_friction", "load_dependent_friction")
+
+
+def _friction_torque(phys) -> tuple[np.ndarray, np.ndarray]:
+    """(T, n) the fitted friction laws' torque, N*m: low-passed like the residual, and as the
+    laws themselves (unfiltered, to draw against velocity)."""
+    from ..physics.effects import build_atoms
+    from .selection import atom_indices
+
+    chosen = [e for e in phys.chosen if e.name in FRICTION]
+    if not chosen:
+        return np.zeros(phys.A.shape[:2]), np.zeros(phys.A.shape[:2])
+    coef = phys.coefficients()
+    S = atom_indices(chosen, {a: i for i, a in enumerate(phys.keys)})
+    keys, A = build_atoms(chosen, phys.ctx)
+    return (phys.A[:, :, S] @ np.array([coef[phys.keys[i]] for i in S]),
+            A @ np.array([coef.get(k, 0.0) for k in keys]))
+
+
 def _disturbance(pushes, t: np.ndarray) -> dict:
     evidence = {"method": pushes.info.get("method"), "threshold": pushes.info.get("threshold")}
     if pushes.em is not None:
         p = pushes.em["p_disturbed"]
         evidence["em_p_disturbed_max_per_span"] = [float(p[a:b].max()) for a, b in runs(pushes.disturbed)][:50]
     return disturbance_finding(pushes.disturbed, spans_of(pushes.disturbed, t), evidence)
+
+
+def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
+    """``res`` with what fails the plausibility checks (``plausibility.check``) withheld and
+    the warnings in words."""
+    from ..physics.context import pin_model
+    from .plausibility import check
+
+    dq_logged = log.dq is not None and not getattr(log, "dq_estimated", False)
+    kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot), q=log.q, dq=log.dq,
+                                     t=log.t, dq_logged=dq_logged)
+    return dataclasses.replace(res, findings=kept, withheld=withheld, warnings=warnings)
 
 
 def _read(log, robot):

@@ -2,6 +2,7 @@
 the residual concentrates, a Markdown report and residual plots."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,29 @@ def mode_switch_finding(ms, ctx, *, alpha: float, n_folds: int) -> dict:
                         f"{int((d > 0).sum())} of {len(d)} time blocks.")}
 
 
+def mode_effect_findings(ms, ctx) -> list[dict]:
+    """One finding of the switching effect per mode whose magnitude (its first parameter, e.g.
+    the payload's mass) is above zero with 97.5% confidence (CONTRACT section 3: a payload per
+    mode when it switches); a mode without one (the payload off) gives none."""
+    eff = ms.effect
+    first, unit = next(iter(eff.units.items()))
+    out = []
+    for k, pm in enumerate(ms.per_mode):
+        ci = pm.get("interval") or {}
+        if not (pm.get("present") and ci.get(first)):
+            continue
+        params = {key: v for key, v in pm.items() if key not in ("fraction", "interval", "present")}
+        lo, hi = ci[first]
+        out.append({"effect": eff.name, **eff.where(ctx), "mode": k, "params": params,
+                    "evidence": {"mode": k, "fraction_of_time": pm["fraction"], "params_interval": ci,
+                                 "interval_method": "block bootstrap of the mode's fit over the mode test's time "
+                                                    "blocks, percentile"},
+                    "explanation": f"in mode {k} ({100 * pm['fraction']:.0f}% of the time): "
+                                   f"{next(iter(eff.where(ctx).values()))} carries {eff.label} of "
+                                   f"{pm[first]:.3g} {unit} ({lo:.3g} to {hi:.3g})."})
+    return out
+
+
 def disturbance_finding(disturbed: np.ndarray, spans: list, evidence: dict) -> dict:
     """The ``external_disturbance`` finding: ``disturbed`` (T,) bool, ``spans`` in s."""
     return {"effect": "external_disturbance", "joint": None,
@@ -72,9 +96,12 @@ class DiagnosisResult:
     info: dict = field(default_factory=dict)
     plot_data: dict | None = field(default=None, repr=False)
     labels: dict | None = field(default=None, repr=False)
+    warnings: list = field(default_factory=list)
+    withheld: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"findings": self.findings, "fit": self.fit, "location": self.location, "info": self.info}
+        return {"findings": self.findings, "warnings": self.warnings, "withheld_findings": self.withheld,
+                "fit": self.fit, "location": self.location, "info": self.info}
 
     def to_json(self, indent: int = 2) -> str:
         return json.dumps(jsonable(self.to_dict()), indent=indent)
@@ -82,7 +109,12 @@ class DiagnosisResult:
     def report_markdown(self) -> str:
         effects = [f for f in self.findings if f["effect"] not in WHOLE_LOG]
         lines = ["# Sim-vs-real diagnosis", ""]
-        if not effects:
+        if self.warnings:
+            lines += ["## Warnings", ""] + [f"- **{w}**" for w in self.warnings]
+            lines += [f"- withheld: {f['explanation']} ({f['withheld_because']})" for f in self.withheld] + [""]
+        if not effects and self.warnings:
+            lines.append("No finding is reported: the warnings above say why the numbers cannot be trusted.")
+        elif not effects:
             lines.append("Nothing is missing: no candidate effect improves the held-out (time-block "
                          "cross-validated) error significantly over the nominal model.")
             lines += [""] * bool(self.findings) + [f"- {f['explanation']}" for f in self.findings]
@@ -116,8 +148,7 @@ class DiagnosisResult:
         out.mkdir(parents=True, exist_ok=True)
         doc = self
         if self.plot_data is not None:
-            doc = DiagnosisResult(self.findings, self.fit, self.location, self.joint_names,
-                                  {**self.info, "plots": plot_residuals(self.plot_data, out)})
+            doc = dataclasses.replace(self, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
         (out / "findings.json").write_text(doc.to_json())
         if self.labels is not None:
             import pandas as pd
@@ -126,7 +157,39 @@ class DiagnosisResult:
 
             write_table(out / "labels.parquet", pd.DataFrame(self.labels))
         (out / "report.md").write_text(doc.report_markdown())
+        doc.report_html(out)
         return out
+
+    def report_html(self, out: Path) -> Path:
+        """``out/report.html``: warnings, findings with their intervals, the held-out error per
+        stage and joint, the plots (PNGs already in ``out``) and the JSON, on one page."""
+        from ..evaluation.html import HtmlReport
+
+        page = HtmlReport("mmgp diagnose", subtitle=f"{self.info.get('n_samples')} samples analysed")
+        if self.warnings:
+            page.section("Warnings", "The numbers below cannot be trusted as they stand:")
+            page.table(["warning"], [[w] for w in self.warnings], kind="warnings")
+            if self.withheld:
+                page.table(["withheld finding", "because"],
+                           [[f["explanation"], f["withheld_because"]] for f in self.withheld], kind="withheld")
+        page.section("Findings", None if self.findings else "Nothing is missing from the nominal model.")
+        rows = [[f["effect"], f.get("joint") or f.get("link"), f["explanation"],
+                 json.dumps(jsonable(f.get("evidence", {}).get("params_interval")))] for f in self.findings]
+        page.table(["effect", "where", "explanation", "interval"], rows, kind="findings")
+        stages = [s for s in STAGES if s in self.fit]
+        page.section("Held-out normalised MSE per joint", "Time-block cross-validation; 0 is perfect, 1 is as good "
+                                                          "as the torque's mean.")
+        page.table(["joint"] + stages, [[j] + [self.fit[s]["nmse"].get(j) for s in stages] for j in self.joint_names],
+                   kind="nmse")
+        plots = self.info.get("plots") or []
+        if plots:
+            page.section("Residuals", "Per joint: residual against velocity, position and torque before and "
+                                      "after the found effects; the fitted friction law in red over what the "
+                                      "rest of the model leaves.")
+            for name in plots:
+                page.figure(out / name)
+        page.section("Summary").json(self.to_dict(), "findings")
+        return page.write(out / "report.html")
 
 
 def plot_residuals(d: dict, out: Path) -> list[str]:
@@ -141,11 +204,20 @@ def plot_residuals(d: dict, out: Path) -> list[str]:
     idx = np.linspace(0, T - 1, min(T, 3000)).astype(int)
     for j, jn in enumerate(d["joint_names"]):
         fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharey="row")
+        fr = d.get("friction")
         for row, (res, lab) in enumerate(((d["r_before"], "nominal"), (d["r_after"], "with physics"))):
             for col, (x, xl) in enumerate(((d["dq"], "dq [rad/s]"), (d["q"], "q [rad]"), (d["tau"], "tau [N*m]"))):
                 ax = axes[row, col]
                 ax.plot(x[idx, j], res[idx, j], ".", ms=1.5, alpha=0.5, rasterized=True)
                 ax.axhline(0, color="k", lw=0.5)
+                if row == 1 and col == 0 and fr is not None and np.any(fr[:, j]):
+                    # what friction must explain (the rest of the model removed) and the law fitted to it
+                    ax.plot(x[idx, j], res[idx, j] + fr[idx, j], ".", ms=1.0, color="0.6", alpha=0.4,
+                            rasterized=True)
+                    order = idx[np.argsort(x[idx, j])]
+                    ax.plot(x[order, j], d["friction_law"][order, j], "-", color="tab:red", lw=1.2,
+                            label="fitted friction")
+                    ax.legend(loc="upper left", fontsize=7)
                 ax.set_xlabel(xl)
                 if col == 0:
                     ax.set_ylabel(f"residual, {lab} [N*m]")

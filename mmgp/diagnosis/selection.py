@@ -109,11 +109,16 @@ class FoldGrams:
     def cv_errors(self, S: Sequence[int], w: np.ndarray) -> np.ndarray:
         """Held-out sum of squared errors (K, n) of the model with atoms ``S``."""
         S = list(S)
+        return self.test_errors(S, [self.fit(S, w, k) for k in range(self.K)] if S else None)
+
+    def test_errors(self, S: Sequence[int], thetas) -> np.ndarray:
+        """Sum of squared errors (K, n) on each test block of atoms ``S`` with the coefficients
+        ``thetas[k]`` (|S|,) fitted elsewhere for fold k (None or no atoms: the residual's own)."""
+        S = list(S)
         err = self.yte.copy()
-        if not S:
+        if not S or thetas is None:
             return err
-        for k in range(self.K):
-            th = self.fit(S, w, k)
+        for k, th in enumerate(thetas):
             Gs = self.Gte[k][:, S][:, :, S]
             cs = self.cte[k][:, S]
             err[k] = self.yte[k] - 2 * cs @ th + np.einsum("p,jpq,q->j", th, Gs, th)
@@ -157,9 +162,10 @@ class ForwardCVSelector(BaseEstimator):
     significant by chance). The qualifying candidate with the smallest held-out error is added;
     the search stops when none qualifies or after ``max_steps`` effects (None: no limit).
 
-    ``fit(effects, keys, grams, w, ctx)``: ``effects`` the candidate list, ``keys`` the atom keys
-    indexing the Gram matrices, ``w`` (n,) joint weights (inverse noise variance), ``ctx`` the
-    Context the effects judge admissibility in. Learned: ``path_`` (list of PathStep),
+    ``fit(effects, keys, grams, w, ctx, start=())``: ``effects`` the candidate list, ``keys`` the
+    atom keys indexing the Gram matrices, ``w`` (n,) joint weights (inverse noise variance), ``ctx``
+    the Context the effects judge admissibility in, ``start`` effects the model holds from the
+    outset (the re-identified rigid body: the others are judged against it). Learned: ``path_`` (list of PathStep),
     ``chosen_step_``, ``selected_`` (effects), ``p_values_`` (signed-rank p-value of each added
     effect's gain, in order).
     """
@@ -207,13 +213,14 @@ class ForwardCVSelector(BaseEstimator):
                     return c
         return best
 
-    def fit(self, effects, keys, grams: FoldGrams, w: np.ndarray, ctx) -> "ForwardCVSelector":
+    def fit(self, effects, keys, grams: FoldGrams, w: np.ndarray, ctx, start=()) -> "ForwardCVSelector":
         index = {a: i for i, a in enumerate(keys)}
-        e0 = grams.cv_errors([], w) @ w
-        path = [PathStep([], float(e0.mean()), e0)]
+        start = list(start)
+        e0 = grams.cv_errors(atom_indices(start, index), w) @ w
+        path = [PathStep(start, float(e0.mean()), e0)]
         p_values = []
-        max_steps = self.max_steps or len(effects)
-        while len(path) - 1 < max_steps:
+        max_steps = (self.max_steps or len(effects)) + len(start)
+        while len(path[-1].effects) < max_steps:
             cand = self._candidates(effects, path[-1].effects, keys, index, grams, w, ctx, path[-1].cv_folds)
             crit = self.alpha / max(len(cand), 1)
             ok = [c for c in cand if c.p_value < crit]
@@ -227,3 +234,64 @@ class ForwardCVSelector(BaseEstimator):
         self.selected_ = list(path[-1].effects)
         self.p_values_ = p_values
         return self
+
+
+def own_atoms(e, chosen, index: dict) -> list[int]:
+    """Column indices that leave the model with ``e``: its atoms no other chosen effect holds,
+    except an effect it extends (``e.requires``: load dependence leaves Coulomb friction)."""
+    others = atom_indices([o for o in chosen if o is not e], index)
+    return [index[a] for a in e.atoms() if index[a] not in others]
+
+
+def own_gain(e, chosen, index: dict, grams: FoldGrams, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held-out errors (K, n) of the chosen model without ``e``'s own atoms and with them, and the
+    paired joint-weighted gains (K,) (``without - with``)."""
+    S = atom_indices(chosen, index)
+    drop = set(own_atoms(e, chosen, index))
+    err_with = grams.cv_errors(S, w)
+    err_wo = grams.cv_errors([i for i in S if i not in drop], w)
+    return err_wo, err_with, (err_wo - err_with) @ w
+
+
+def prune(chosen: list, keys, grams: FoldGrams, w: np.ndarray, alpha: float) -> tuple[list, list]:
+    """Backward elimination: while some chosen effect's own paired held-out gain is not
+    significant (one-sided signed-rank p >= ``alpha`` / number of effects that hold atoms of their
+    own: each finding must carry its own weight), drop the least significant and re-test.
+    Returns (kept effects, [(dropped effect, p-value)])."""
+    index = {a: i for i, a in enumerate(keys)}
+    chosen, dropped = list(chosen), []
+    while chosen:
+        tested = [(signed_rank_p(own_gain(e, chosen, index, grams, w)[2]), k, e) for k, e in enumerate(chosen)
+                  if own_atoms(e, chosen, index)]
+        if not tested:
+            break
+        p, _, worst = max(tested, key=lambda x: (x[0], x[1]))
+        if p < alpha / len(tested):
+            break
+        # an effect dropped takes those that extend it along
+        gone = [worst] + [o for o in chosen if o.index == worst.index and worst.name in o.requires]
+        chosen = [o for o in chosen if o not in gone]
+        dropped += [(o, p) for o in gone]
+    return chosen, dropped
+
+
+def extend_nested(chosen: list, library, keys, grams: FoldGrams, w: np.ndarray, ctx, alpha: float) -> list:
+    """Nested extensions of chosen effects (an effect whose ``requires`` names a chosen effect
+    on its index: load dependence of a found Coulomb friction), each added when its paired
+    held-out gain over the chosen model is significant (one-sided signed-rank test, Bonferroni
+    over the extensions tried) and the extended model physically admissible."""
+    index = {a: i for i, a in enumerate(keys)}
+    tries = [e for e in library if e not in chosen and e.requires and
+             all(any(o.name == req and o.index == e.index for o in chosen) for req in e.requires)]
+    if not tries:
+        return list(chosen)
+    S0 = atom_indices(chosen, index)
+    cur = grams.cv_errors(S0, w) @ w
+    out = list(chosen)
+    for e in tries:
+        S = S0 + [index[a] for a in e.atoms() if index[a] not in S0]
+        coef = dict(zip((keys[i] for i in S), grams.fit(S, w)))
+        if all(o.admissible(coef, ctx) for o in chosen + [e]) and \
+                signed_rank_p(cur - grams.cv_errors(S, w) @ w) < alpha / len(tries):
+            out.append(e)
+    return out

@@ -116,7 +116,7 @@ class _GramSolver:
         return c
 
 
-def _irls_shared(A, Y, mask, *, huber_steps, tukey_steps, tol, whiten, centre, solver, huber_k) -> RobustFit:
+def _irls_shared(A, Y, mask, *, huber_steps, tukey_steps, tol, whiten, centre, solver, huber_k, init=None) -> RobustFit:
     N, m, p = A.shape
     solve = _MinNormSolver(A) if solver == "lstsq" else _GramSolver(A)
     if len(solve.cols) == 0:
@@ -125,7 +125,8 @@ def _irls_shared(A, Y, mask, *, huber_steps, tukey_steps, tol, whiten, centre, s
     # whitened: each output's rows divided by its residual scale, so outputs in different units
     # or with different noise count alike; the first pass uses the outputs' own spread
     scale = Y.std(0) + _EPS if whiten else np.ones(m)
-    c = solve(Y, np.sqrt(h) / scale if whiten else np.sqrt(h))
+    h0 = h if init is None else h * init
+    c = solve(Y, np.sqrt(h0) / scale if whiten else np.sqrt(h0))
     for psi, k, n_steps in ((_huber, huber_k, huber_steps), (_tukey, TUKEY_K, tukey_steps)):
         for _ in range(n_steps):
             r = Y - solve.predict(c)
@@ -142,7 +143,7 @@ def _irls_shared(A, Y, mask, *, huber_steps, tukey_steps, tol, whiten, centre, s
 def robust_regression(A: np.ndarray, Y: np.ndarray, *, shared: bool = True, mask: np.ndarray | None = None,
                       huber_steps: int = 4, tukey_steps: int = 0, tol: float | None = None,
                       whiten: bool = False, centre: bool = True, solver: str = "lstsq",
-                      huber_k: float = HUBER_K) -> RobustFit:
+                      huber_k: float = HUBER_K, init: np.ndarray | None = None) -> RobustFit:
     """Robust (IRLS) fit of ``Y`` (N, n) on columns ``A`` (N, n, p).
 
     shared: one coefficient vector (p,) for all outputs (``Y[:, j] ~ A[:, j] @ c``), else one per
@@ -157,13 +158,16 @@ def robust_regression(A: np.ndarray, Y: np.ndarray, *, shared: bool = True, mask
         not inflate it) or about zero.
     solver: "lstsq" (minimum-norm on unit-RMS columns, for rank-deficient regressors) or "gram"
         (ridge-regularised normal equations, for many stacked rows).
+    init: (N, n) weights in [0, 1] of the first solve only (shared fits): where IRLS starts. A
+        start that already leaves most outliers out (e.g. another detector's flags) keeps the
+        reweighting from settling on a fit the outliers dragged, when they are many (long pushes).
     """
     A = np.asarray(A, dtype=np.float64)
     Y = np.asarray(Y, dtype=np.float64)
     kw = dict(huber_steps=huber_steps, tukey_steps=tukey_steps, tol=tol, whiten=whiten, centre=centre,
               solver=solver, huber_k=huber_k)
     if shared:
-        return _irls_shared(A, Y, mask, **kw)
+        return _irls_shared(A, Y, mask, init=init, **kw)
     fits = [_irls_shared(A[:, j:j + 1], Y[:, j:j + 1], None if mask is None else mask[:, j:j + 1], **kw)
             for j in range(Y.shape[1])]
     return RobustFit(np.stack([f.coef for f in fits]), np.concatenate([f.weights for f in fits], 1),

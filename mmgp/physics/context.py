@@ -73,7 +73,11 @@ class Context:
     ``payload_com``: link index -> centre-of-mass guess (3,) m at which payload columns are
     linearised (absent: the link origin). ``tau_load``: (T, n) load that load-dependent friction
     scales with (N*m); None = the nominal torque. ``reach``: how far a link frame can be from the
-    base (m; None: unknown), bounding where an attached mass can sit.
+    base (m; None: unknown), bounding where an attached mass can sit. ``pi0``: (10 n,) nominal
+    inertial parameters in the regressor's order; ``base``: the base parameters this trajectory
+    determines (``mmgp.physics.identification.BaseParameters``; None: no re-identification);
+    ``distal``: indices of the links no other joint moves (where a payload is a ``payload``,
+    CONTRACT section 3).
     """
 
     q: np.ndarray
@@ -88,6 +92,9 @@ class Context:
     payload_com: dict = field(default_factory=dict)
     tau_load: np.ndarray | None = None
     reach: float | None = None
+    pi0: np.ndarray | None = None
+    base: object | None = None
+    distal: tuple = ()
 
     @property
     def n(self) -> int:
@@ -109,6 +116,14 @@ class Context:
     def with_payload_com(self, link: int, com: np.ndarray) -> "Context":
         """A copy whose payload on ``link`` is linearised at ``com`` (3,) m."""
         return dataclasses.replace(self, payload_com={**self.payload_com, link: np.asarray(com, dtype=np.float64)})
+
+    def with_load(self, tau_load: np.ndarray | None) -> "Context":
+        """A copy whose load-dependent friction scales with ``tau_load`` (T, n) N*m."""
+        return dataclasses.replace(self, tau_load=tau_load)
+
+    def with_base(self, base) -> "Context":
+        """A copy that re-identifies the base parameters ``base`` (None: none)."""
+        return dataclasses.replace(self, base=base)
 
 
 def build_context(robot, q, dq, ddq, *, v_s: np.ndarray | None = None,
@@ -143,4 +158,13 @@ def build_context(robot, q, dq, ddq, *, v_s: np.ndarray | None = None,
         Y[i] = pin.computeJointTorqueRegressor(model, data, qc[i], dq[i], ddq[i])
     names = list(joint_names) if joint_names is not None else [model.names[j] for j in range(1, model.njoints)]
     vs = smooth_sign_scale(dq) if v_s is None else np.asarray(v_s, dtype=np.float64)
-    return Context(q, dq, ddq, tau, dtdq, Y, vs, names, link_names_of(model), reach=reach_of(model))
+    pi0 = np.concatenate([model.inertias[j].toDynamicParameters() for j in range(1, model.njoints)])
+    return Context(q, dq, ddq, tau, dtdq, Y, vs, names, link_names_of(model), reach=reach_of(model), pi0=pi0,
+                   distal=distal_links(model))
+
+
+def distal_links(model) -> tuple:
+    """0-based indices of the joints no other joint has as parent: their links are the most
+    distal moving links (one for a serial arm)."""
+    parents = {int(model.parents[j]) for j in range(1, model.njoints)}
+    return tuple(j - 1 for j in range(1, model.njoints) if j not in parents)

@@ -22,6 +22,7 @@ from typing import ClassVar, Sequence
 import numpy as np
 
 from .context import Context
+from .identification import body_deltas
 from .inertial import point_mass_parameters
 from .payload import com_from_moments, linearised_columns
 
@@ -62,7 +63,9 @@ class Effect:
     ``requires`` (effects on the same index a model must hold before this one may extend it),
     ``distal_tiebreak`` (of indices the data cannot tell apart, report the most distal),
     ``linearised`` (columns depend on a point re-estimated from the fit: :meth:`relinearise`),
-    ``switchable`` (may take one of two values over the log: a mode-switch candidate).
+    ``switchable`` (may take one of two values over the log: a mode-switch candidate),
+    ``sensor`` (an artefact of the logged signals, not a torque the joint transmits: left out of
+    the load that load-dependent friction scales with).
 
     By default parameter i is the coefficient of atom i (``params``/``coefficients``); effects
     with another map override both.
@@ -77,6 +80,7 @@ class Effect:
     distal_tiebreak: ClassVar[bool] = False
     linearised: ClassVar[bool] = False
     switchable: ClassVar[bool] = False
+    sensor: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)
@@ -112,6 +116,12 @@ class Effect:
         """Whether fitted coefficients (atom -> value) describe a physically possible effect."""
         return all(coef[a] >= 0 for a in self.nonneg)
 
+    def cones(self, ctx: Context) -> list:
+        """Second-order cone constraints on the coefficients, ``(magnitude atom, [atoms],
+        radius)``: the atoms' norm at most radius times the magnitude (a point mass's first
+        moment within reach of its frame)."""
+        return []
+
     def relinearise(self, coef: dict, ctx: Context) -> Context:
         """The context with this effect's linearisation point moved to what ``coef`` says."""
         return ctx
@@ -120,6 +130,11 @@ class Effect:
     def candidate_indices(cls, ctx: Context) -> list[int]:
         """Indices this effect is a candidate at on this robot and trajectory."""
         return list(range(ctx.n))
+
+    @classmethod
+    def candidates(cls, ctx: Context, indices: Sequence[int] | None = None) -> list["Effect"]:
+        """The candidate effects of this class (at ``indices``; None: :meth:`candidate_indices`)."""
+        return [cls(k) for k in (cls.candidate_indices(ctx) if indices is None else indices)]
 
     # ---- parameters -----------------------------------------------------------------------
     def params(self, coef: dict, cov: dict) -> tuple[dict, dict]:
@@ -299,6 +314,7 @@ class TorqueOffset(_JointColumnEffect):
     units = {"offset": "N*m"}
     kind = "one"
     nonnegative = False
+    sensor = True
 
     def values(self, ctx):
         return np.ones(ctx.T)
@@ -334,17 +350,24 @@ class Payload(Effect):
         # attached to the robot: the centre of mass lies within the robot's reach of the link
         # frame (else the first-moment columns are fitting something else)
         m, h = self._moments(coef)
-        return m >= 0 and (ctx.reach is None or np.linalg.norm(h) <= ctx.reach * m)
+        # (a constrained fit lands on the cone's surface up to the solver's tolerance)
+        return m >= 0 and (ctx.reach is None or np.linalg.norm(h) <= ctx.reach * m * (1 + 1e-6) + 1e-9)
+
+    def cones(self, ctx):
+        a = self.atoms()
+        return [(a[0], list(a[1:]), ctx.reach)] if ctx.reach is not None else []
 
     def relinearise(self, coef, ctx):
         return ctx.with_payload_com(self.index, com_from_moments(*self._moments(coef)))
 
     @classmethod
     def candidate_indices(cls, ctx):
-        # links whose mass column is not identically zero: a point mass on the first link's
-        # axis, or on the only link of a 1-DOF robot, moves nothing the joint torques can see
+        # the most distal links (CONTRACT section 3: a mass elsewhere is an inertial-parameter
+        # difference), where the mass column is not identically zero: a point mass on the first
+        # link's axis, or on the only link of a 1-DOF robot, moves nothing the torques can see
         scale = np.abs(ctx.tau_rbd).max() + 1e-12
-        return [k for k in range(ctx.n) if np.abs(ctx.link_regressor(k)[:, :, 0]).max() > 1e-6 * scale]
+        links = ctx.distal or tuple(range(ctx.n))
+        return [k for k in links if np.abs(ctx.link_regressor(k)[:, :, 0]).max() > 1e-6 * scale]
 
     def _moments(self, coef: dict) -> tuple[float, np.ndarray]:
         th = np.array([coef[a] for a in self.atoms()])
@@ -390,6 +413,63 @@ class Payload(Effect):
                 f"at [{com}] m (link frame)")
 
 
+class InertialParameters(Effect):
+    """The rigid body re-identified: the base parameters the trajectory determines
+    (``ctx.base``, :func:`mmgp.physics.identification.base_parameters`) move by ``beta`` from the
+    nominal ones; columns are the regressor's independent columns. Reported per CONTRACT 1.1 as
+    ``inertial_parameters`` for the whole model (``link`` null): ``base`` (name -> identified
+    minus nominal) and ``delta`` per body for what the base parameters determine."""
+
+    name = "inertial_parameters"
+    label = "inertial parameters different from the URDF's"
+    units = {"base": ""}
+    scope = "model"
+
+    def __init__(self, index: int = 0, base=None, pi0=None):
+        super().__init__(index)
+        self.base = base
+        self.pi0 = pi0
+
+    def atoms(self):
+        return tuple(("rb", i) for i in range(self.base.n_base))
+
+    def columns(self, ctx):
+        return [ctx.regressor[:, :, c] for c in self.base.columns]
+
+    @classmethod
+    def candidates(cls, ctx, indices=None):
+        return [cls(0, ctx.base, ctx.pi0)] if ctx.base is not None and ctx.base.n_base else []
+
+    def params(self, coef, cov):
+        atoms = self.atoms()
+        names = self.base.names
+        params = {"base": {nm: float(coef[a]) for nm, a in zip(names, atoms)}}
+        if ("pi", 0) in coef and self.pi0 is not None:
+            # the full change a physically consistent fit chose; only what the data fix is told
+            dpi = np.array([coef[("pi", i)] for i in range(len(self.pi0))])
+            params = {"delta": body_deltas(self.pi0, self.pi0 + dpi, self.base), **params}
+        return params, {"base": {nm: _std(cov, a) for nm, a in zip(names, atoms)}}
+
+    def coefficients(self, params):
+        return dict(zip(self.atoms(), (params["base"][nm] for nm in self.base.names)))
+
+    def where(self, ctx):
+        return {"link": None}
+
+    def affected_joints(self, ctx):
+        return list(range(ctx.n))
+
+    def report_params(self, params, ctx):
+        return {"link": None, **params}
+
+    def describe(self, params, std, ctx):
+        rel = sorted(((abs(v) / max(std["base"].get(k, 0.0), 1e-300), k, v) for k, v in params["base"].items()),
+                     reverse=True)[:3]
+        top = "; ".join(f"{k} by {format_value(v, std['base'].get(k))}" for _, k, v in rel)
+        return (f"the rigid body ({len(params['base'])} base parameters re-identified): {self.label}; the "
+                f"best-determined changes: {top}")
+
+
 JOINT_EFFECTS = tuple(name for name, cls in EFFECT_CLASSES.items() if cls.scope == "joint")
 
 
@@ -410,12 +490,12 @@ def effect_library(ctx: Context, *, effects: Sequence[str | type[Effect]] | None
     or on the given 0-based links. Joint effects come first, in the order of ``effects``."""
     classes = effect_classes(effects)
     lib: list[Effect] = []
-    for scope in ("joint", "link"):
+    for scope in ("joint", "link", "model"):
         for cls in classes:
             if cls.scope != scope:
                 continue
-            auto = scope == "joint" or isinstance(payload_links, str)
-            lib.extend(cls(k) for k in (cls.candidate_indices(ctx) if auto else payload_links))
+            auto = scope != "link" or isinstance(payload_links, str)
+            lib.extend(cls.candidates(ctx, None if auto else payload_links))
     return lib
 
 

@@ -1,0 +1,152 @@
+"""Whether a diagnosis can be believed: checks of the inputs and of the answer.
+
+Wrong inputs (another robot's model, angles in degrees, joints in another order, a log of noise)
+still give numbers; without these checks they come out as confident findings (a torque-sensor
+offset of -183 N*m, a payload of 590 kg). Each check here gives a warning in words; what fails
+a check is withheld from ``findings`` (kept under ``withheld_findings`` with the reason), never
+silently reported.
+
+Input checks (the log against the model): positions inside the model's joint limits, angles
+that are radians, logged velocities that are the time derivative of the logged positions.
+Answer checks: the model with the found physics must predict each joint's torque better than
+the torque's mean (held-out normalised MSE < 1; a nominal model worse than the mean on most
+joints is told), and each finding's magnitude must be physically possible (a torque offset
+or friction level within the joint's rated torque, a payload mass positive and below the
+robot's own mass).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: angles beyond the model's limits by more than this (rad) count as violations
+LIMIT_MARGIN = 0.05
+#: share of the samples beyond the limits that makes a warning
+LIMIT_FRACTION = 0.01
+#: logged dq against the derivative of the logged q: lowest correlation, largest scale mismatch
+MIN_DQ_CORRELATION = 0.7
+MAX_DQ_SCALE_RATIO = 1.5
+
+
+def _limited_joints(model) -> list[tuple[int, float, float]]:
+    """(joint index, lower, upper) of the revolute/prismatic joints with finite limits."""
+    out = []
+    for k, j in enumerate(range(1, model.njoints)):
+        if model.nqs[j] != 1:
+            continue
+        i = model.idx_qs[j]
+        lo, hi = float(model.lowerPositionLimit[i]), float(model.upperPositionLimit[i])
+        if np.isfinite(lo) and np.isfinite(hi) and hi > lo and hi - lo < 1e3:
+            out.append((k, lo, hi))
+    return out
+
+
+def limit_warnings(q: np.ndarray, model, names: list) -> list[str]:
+    """Warnings for positions ``q`` (T, n) rad outside the limits of pinocchio ``model``, and
+    for angle ranges that only degrees explain."""
+    out = []
+    for k, lo, hi in _limited_joints(model):
+        beyond = (q[:, k] < lo - LIMIT_MARGIN) | (q[:, k] > hi + LIMIT_MARGIN)
+        if beyond.mean() > LIMIT_FRACTION:
+            out.append(f"{names[k]}: the logged position leaves the model's joint limits [{lo:.3g}, {hi:.3g}] rad "
+                       f"on {100 * beyond.mean():.0f}% of the samples (range {q[:, k].min():.3g} to "
+                       f"{q[:, k].max():.3g}): wrong robot model, joint order or units")
+    span = np.ptp(q, axis=0)
+    deg = [names[k] for k in range(q.shape[1]) if span[k] > 4 * np.pi]
+    if deg:
+        out.append(f"{', '.join(deg)}: the positions span more than two turns ({span.max():.3g}); angles in "
+                   "degrees? (the log must hold radians)")
+    return out
+
+
+def velocity_warnings(t: np.ndarray, q: np.ndarray, dq: np.ndarray, names: list) -> list[str]:
+    """Warnings where logged velocities ``dq`` (T, n) are not the time derivative of ``q``: the
+    central difference of q over about 20 ms, correlated with dq and compared in scale."""
+    dt = float(np.median(np.diff(t)))
+    h = max(1, int(round(0.01 / max(dt, 1e-12))))
+    if len(t) <= 2 * h + 10:
+        return []
+    fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
+    v = dq[h:-h]
+    out = []
+    for k in range(q.shape[1]):
+        a, b = v[:, k] - v[:, k].mean(), fd[:, k] - fd[:, k].mean()
+        sa, sb = np.sqrt(a @ a), np.sqrt(b @ b)
+        if sa == 0 or sb == 0:
+            continue
+        corr, ratio = float(a @ b / (sa * sb)), float(sa / sb)
+        if corr < MIN_DQ_CORRELATION or not 1 / MAX_DQ_SCALE_RATIO < ratio < MAX_DQ_SCALE_RATIO:
+            out.append(f"{names[k]}: the logged velocity is not the time derivative of the logged position "
+                       f"(correlation {corr:.2f}, scale ratio {ratio:.2f}): columns swapped, mixed units or "
+                       "a corrupt log")
+    return out
+
+
+def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
+    """Warnings from the held-out errors per stage, and the joints whose findings they withhold:
+    each joint the found physics leaves worse than the torque's mean, every joint (and the
+    whole-log findings) when that is most of them. A nominal model worse than the mean on most
+    joints is told, but withholds nothing by itself: a real arm's URDF can be that far off and
+    the re-identified body right (the Staubli TX40: nominal 0.77-1.45, with physics 0.003-0.007)."""
+    out, bad = [], set()
+    nom = fit.get("nominal", {}).get("nmse", {})
+    worse = [j for j in names if nom.get(j, 0.0) > 1.0]
+    if len(worse) > len(names) / 2:
+        out.append(f"the nominal model predicts the torque worse than its mean on {len(worse)} of {len(names)} "
+                   f"joints (held-out nMSE up to {max(nom[j] for j in worse):.3g}): a wrong robot model, joint "
+                   "order or units, or a URDF far from the robot")
+    phys = fit.get("with_physics", {}).get("nmse", {})
+    for j in names:
+        if phys.get(j, 0.0) > 1.0:
+            out.append(f"{j}: even with the found physics the model predicts the torque worse than its mean "
+                       f"(held-out nMSE {phys[j]:.3g}); findings on this joint are withheld")
+            bad.add(j)
+    if len(bad) > len(names) / 2:
+        bad.update(names)
+    return out, bad
+
+
+def _effort(model, k: int) -> float:
+    e = float(model.effortLimit[k]) if len(model.effortLimit) > k else 0.0
+    return e if np.isfinite(e) and e > 0 else np.inf
+
+
+def implausible(finding: dict, model, names: list) -> str | None:
+    """Why a finding is physically impossible or implausible (None when it is not)."""
+    p, j = finding.get("params", {}), finding.get("joint")
+    k = names.index(j) if j in names else None
+    if finding["effect"] == "payload":
+        total = float(sum(model.inertias[i].mass for i in range(1, model.njoints)))
+        m = float(p.get("mass", 0.0))
+        if not 0 < m <= total:
+            return f"a payload of {m:.3g} kg on {finding.get('link')} (the robot itself weighs {total:.3g} kg)"
+    if k is None:
+        return None
+    limit = _effort(model, k)
+    for key in ("offset", "tau_c"):
+        v = p.get(key)
+        if finding["effect"] != "encoder_offset" and v is not None and abs(float(v)) > limit:
+            return f"{finding['effect']} of {float(v):.3g} N*m on {j}, beyond its rated torque {limit:.3g} N*m"
+    return None
+
+
+def check(findings: list, fit: dict, names: list, model, *, q, dq, t, dq_logged: bool):
+    """(kept findings, withheld findings each with its ``withheld_because``, warnings)."""
+    warnings = limit_warnings(q, model, names)
+    if dq_logged:
+        warnings += velocity_warnings(t, q, dq, names)
+    inputs_bad = bool(warnings)
+    fw, bad = fit_warnings(fit, names)
+    warnings += fw
+    kept, withheld = [], []
+    for f in findings:
+        why = "the inputs failed the checks above" if inputs_bad else None
+        if why is None and (f.get("joint") in bad or (bad >= set(names))):
+            why = "the model stays worse than the torque's mean"
+        why = why or implausible(f, model, names)
+        if why is None:
+            kept.append(f)
+        else:
+            withheld.append({**f, "withheld_because": why})
+            if not inputs_bad and why not in warnings and not why.startswith("the model"):
+                warnings.append(f"implausible result withheld: {why}")
+    return kept, withheld, warnings

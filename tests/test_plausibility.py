@@ -1,0 +1,126 @@
+"""Wrong inputs give warnings and no confident finding (mmgp.diagnosis.plausibility).
+
+References are independent of the code under test: joint limits and rated torques read from the
+Panda URDF's XML, velocities as closed-form derivatives, a log synthesised with Pinocchio's RNEA.
+"""
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from mmgp.data.logs import RobotLog
+from mmgp.diagnosis import Diagnoser
+from mmgp.diagnosis.plausibility import fit_warnings, implausible, limit_warnings, velocity_warnings
+from mmgp.physics.robot import RobotModel, robot_urdf_path
+
+NAMES = [f"panda_joint{i}" for i in range(1, 8)]
+
+
+@pytest.fixture(scope="module")
+def panda():
+    return RobotModel.from_name("panda", NAMES)
+
+
+@pytest.fixture(scope="module")
+def urdf_limits():
+    """(lower, upper, effort) per Panda joint, from the URDF text."""
+    root = ET.parse(robot_urdf_path("panda")).getroot()
+    lim = {j.get("name"): j.find("limit") for j in root.iter("joint")}
+    return np.array([[float(lim[n].get(k)) for k in ("lower", "upper", "effort")] for n in NAMES])
+
+
+def _trajectory(lims, T=2000, rate=100.0, seed=0):
+    """Sinusoids inside the limits with closed-form derivatives."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) / rate
+    mid, half = lims[:, :2].mean(1), 0.35 * (lims[:, 1] - lims[:, 0]) / 2
+    w, ph = rng.uniform(0.4, 1.2, 7), rng.uniform(0, 2 * np.pi, 7)
+    q = mid + half * np.sin(w * t[:, None] + ph)
+    dq = half * w * np.cos(w * t[:, None] + ph)
+    ddq = -half * w ** 2 * np.sin(w * t[:, None] + ph)
+    return t, q, dq, ddq
+
+
+def test_positions_inside_the_limits_pass_and_degrees_fail(panda, urdf_limits):
+    t, q, dq, _ = _trajectory(urdf_limits)
+    assert limit_warnings(q, panda.pin_model, NAMES) == []
+    assert velocity_warnings(t, q, dq, NAMES) == []
+    deg = limit_warnings(np.degrees(q), panda.pin_model, NAMES)
+    assert any("degrees" in w for w in deg) and any("joint limits" in w for w in deg)
+    # a joint just past its URDF limit on 5% of the samples
+    q2 = q.copy()
+    q2[:100, 3] = urdf_limits[3, 1] + 0.1
+    (w,) = limit_warnings(q2, panda.pin_model, NAMES)
+    assert w.startswith("panda_joint4") and "5%" in w
+
+
+def test_velocities_that_are_not_the_derivative_are_flagged(urdf_limits):
+    t, q, dq, _ = _trajectory(urdf_limits)
+    assert len(velocity_warnings(t, q, np.degrees(dq), NAMES)) == 7  # deg/s against rad
+    noise = np.random.default_rng(1).normal(size=dq.shape)
+    assert len(velocity_warnings(t, q, noise, NAMES)) == 7
+    swapped = dq[:, [1, 0, 2, 3, 4, 5, 6]]
+    assert {w.split(":")[0] for w in velocity_warnings(t, q, swapped, NAMES)} == {"panda_joint1", "panda_joint2"}
+
+
+def test_fit_and_magnitude_checks(panda, urdf_limits):
+    fit = {"nominal": {"nmse": {n: 5.0 for n in NAMES}}, "with_physics": {"nmse": {n: 0.5 for n in NAMES}}}
+    warnings, bad = fit_warnings(fit, NAMES)
+    assert len(warnings) == 1 and bad == set()  # told, but the found physics predicts well
+    fit["with_physics"]["nmse"].update({n: 1.5 for n in NAMES[:4]})
+    warnings, bad = fit_warnings(fit, NAMES)
+    assert len(warnings) == 5 and bad == set(NAMES)
+    fit = {"nominal": {"nmse": {n: 0.3 for n in NAMES}}, "with_physics": {"nmse": {**{n: 0.1 for n in NAMES},
+                                                                                    "panda_joint3": 1.4}}}
+    assert fit_warnings(fit, NAMES)[1] == {"panda_joint3"}
+    effort = urdf_limits[0, 2]
+    over = {"effect": "torque_offset", "joint": "panda_joint1", "params": {"offset": -(effort + 1)}}
+    under = {"effect": "torque_offset", "joint": "panda_joint1", "params": {"offset": -(effort - 1)}}
+    assert "rated torque" in implausible(over, panda.pin_model, NAMES)
+    assert implausible(under, panda.pin_model, NAMES) is None
+    total = sum(float(inert.get("value")) for inert in ET.parse(robot_urdf_path("panda")).getroot().iter("mass"))
+    heavy = {"effect": "payload", "link": "panda_link7", "params": {"mass": 590.0}}
+    assert total < 590 and "payload of 590" in implausible(heavy, panda.pin_model, NAMES)
+
+
+@pytest.fixture(scope="module")
+def friction_log(panda, urdf_limits):
+    """A Panda log by Pinocchio's RNEA with 1.5 N*m Coulomb friction on joint 4."""
+    t, q, dq, ddq = _trajectory(urdf_limits, T=1500)
+    m = panda.pin_model
+    d = m.createData()
+    tau = np.array([pin.rnea(m, d, q[i], dq[i], ddq[i]) for i in range(len(t))])
+    tau[:, 3] += 1.5 * np.tanh(dq[:, 3] / 0.01)
+    tau += np.random.default_rng(2).normal(scale=0.02, size=tau.shape)
+    return RobotLog("synthetic", t, q, tau, dq=dq, ddq=ddq, metadata={"joint_names": NAMES})
+
+
+def _diagnose(log, robot):
+    return Diagnoser(gp=False, plots=False, modes=False, separate="none").fit(log, robot).result_
+
+
+def test_right_inputs_find_the_friction_without_warnings(panda, friction_log):
+    res = _diagnose(friction_log, panda)
+    assert res.warnings == []
+    assert ("coulomb_friction", "panda_joint4") in {(f["effect"], f.get("joint")) for f in res.findings}
+
+
+@pytest.mark.parametrize("wrong", ["degrees", "swapped", "noise", "robot"])
+def test_wrong_inputs_give_warnings_and_no_finding(panda, friction_log, wrong):
+    log, robot = friction_log, panda
+    if wrong == "degrees":
+        log = log.replace(q=np.degrees(log.q), dq=np.degrees(log.dq), ddq=np.degrees(log.ddq))
+    elif wrong == "swapped":
+        perm = [0, 1, 3, 2, 4, 5, 6]
+        log = log.replace(q=log.q[:, perm], dq=log.dq[:, perm], ddq=log.ddq[:, perm], tau=log.tau[:, perm])
+    elif wrong == "noise":
+        rng = np.random.default_rng(3)
+        log = log.replace(dq=rng.normal(size=log.dq.shape), ddq=rng.normal(size=log.dq.shape),
+                          tau=rng.normal(scale=5.0, size=log.tau.shape))
+    else:
+        robot = RobotModel.from_name("xarm7", n_joints=7)
+        log = log.replace(metadata={})
+    res = _diagnose(log, robot)
+    assert res.warnings, wrong
+    assert res.findings == [] and res.to_dict()["warnings"] == res.warnings
