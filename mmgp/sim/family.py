@@ -28,6 +28,7 @@ Units: s, rad, N*m, N, kg, m. Arrays in the spec are plain lists (JSON).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import tempfile
 from dataclasses import dataclass, field
@@ -248,23 +249,33 @@ def _draw_lever(rng, seed, max_samples) -> ScenarioSpec:
         motion=motion, sensor=_draw_sensor(rng, 1, [G], rate), pushes=pushes)
 
 
-def _arm_torque_scale(robot: str, rng, n_states: int = 50) -> np.ndarray:
-    """Per joint RMS of the nominal gravity torque over states in the motion range, with a floor
-    of 1 N*m (wrists), N*m: the scale of friction levels and sensor noise."""
+@functools.lru_cache(maxsize=None)
+def _arm_scales(robot: str, n_states: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per joint, over states in the motion range: RMS of the nominal gravity torque with a floor of
+    1 N*m (wrists; the scale of friction levels and noise), N*m; the mass matrix diagonal at the
+    centre and the smallest apparent inertia 1 / (M^-1)_jj (what one joint's PD loop sees when
+    the others are free; it bounds the damping gain of an explicit 1 ms loop), kg*m^2."""
     import pinocchio as pin
 
     arm = ARMS[robot]
     model = reduced_pinocchio_model(robot_urdf_path(robot), arm["joints"])
     data = model.createData()
+    rng = np.random.default_rng(0)
     q = np.asarray(arm["centre"]) + rng.uniform(-1, 1, (n_states, model.nq)) * np.asarray(arm["half"])
     g = np.array([pin.computeGeneralizedGravity(model, data, qi) for qi in q])
-    return np.maximum(np.sqrt((g ** 2).mean(0)), 1.0)
+
+    def mass(qi):
+        M = pin.crba(model, data, np.asarray(qi, dtype=np.float64))
+        return np.triu(M) + np.triu(M, 1).T
+
+    apparent = np.min([1.0 / np.diag(np.linalg.inv(mass(qi))) for qi in q], axis=0)
+    return np.maximum(np.sqrt((g ** 2).mean(0)), 1.0), np.diag(mass(arm["centre"])), apparent
 
 
 def _draw_arm(rng, seed, robot, max_samples) -> ScenarioSpec:
     arm = ARMS[robot]
     n = len(arm["joints"])
-    scale = _arm_torque_scale(robot, np.random.default_rng(0))
+    scale, m_diag, m_apparent = _arm_scales(robot)
     rate = float(rng.choice(ARM_RATES))
     duration = _duration(rng, rate, max_samples, 40.0, 160.0)
     has = rng.uniform(size=n) < 0.5
@@ -276,11 +287,11 @@ def _draw_arm(rng, seed, robot, max_samples) -> ScenarioSpec:
     if ctrl_type == "ctc":
         kp, kd = np.full(n, wn ** 2), np.full(n, 2 * zeta * wn)
     else:
-        import pinocchio as pin
-
-        model = reduced_pinocchio_model(robot_urdf_path(robot), arm["joints"])
-        M = np.diag(pin.crba(model, model.createData(), np.asarray(arm["centre"], float)))
-        kp, kd = M * wn ** 2, 2 * zeta * M * wn
+        # Joint-space PD on the centre's inertia, the damping capped at 0.5 m_app / dt: an explicit
+        # 1 ms loop on a joint whose apparent inertia is 40x below M_jj (Panda joint 1) diverged.
+        # The stiffness floor keeps a wrist within ~0.1 rad of its reference under its torque scale.
+        kp = np.maximum(m_diag * (0.5 * wn) ** 2, 10.0 * scale)
+        kd = np.minimum(2 * zeta * np.sqrt(kp * m_diag), 0.5 * m_apparent / 1e-3)
     max_speed = float(rng.uniform(0.3, 0.8))
     if rng.uniform() < 0.6:
         motion = _draw_sines(rng, arm["centre"], arm["half"], max_speed, periods=(4.0, 25.0), n_harm=4)
