@@ -200,8 +200,16 @@ def _draw_sensor(rng, n, torque_scale, rate, with_ddq=True) -> dict:
             "ddq_noise": float(rng.uniform(0.05, 0.3))}
 
 
-def _duration(rng, rate, max_samples, lo, hi) -> float:
-    return float(min(rng.uniform(lo, hi), max_samples / rate))
+def _rate_and_duration(rng, rates, max_samples, lo, hi, shortest) -> tuple[float, float]:
+    """A rate from ``rates`` and a duration U(lo, hi) s, shortened to fit ``max_samples`` but
+    not below ``shortest`` s: where even that does not fit, the fastest rate that does is taken
+    (a capped family keeps logs of a realistic length rather than seconds at 1 kHz)."""
+    rate = float(rng.choice(rates))
+    duration = rng.uniform(lo, hi)
+    fits = [r for r in rates if r * shortest <= max_samples] or [min(rates)]
+    if rate * shortest > max_samples:
+        rate = float(max(fits))
+    return rate, float(min(duration, max(max_samples / rate, shortest)))
 
 
 def _draw_lever(rng, seed, max_samples) -> ScenarioSpec:
@@ -226,8 +234,7 @@ def _draw_lever(rng, seed, max_samples) -> ScenarioSpec:
     else:
         wn = rng.uniform(8.0, 40.0)
         kp, kd = wn ** 2, 2 * zeta * wn
-    rate = float(rng.choice(LEVER_RATES))
-    duration = _duration(rng, rate, max_samples, 15.0, 40.0)
+    rate, duration = _rate_and_duration(rng, LEVER_RATES, max_samples, 15.0, 40.0, 10.0)
     if rng.uniform() < 0.5:
         motion = _draw_sines(rng, [0.0], [rng.uniform(0.5, 1.2)], max_speed)
     else:
@@ -276,8 +283,7 @@ def _draw_arm(rng, seed, robot, max_samples) -> ScenarioSpec:
     arm = ARMS[robot]
     n = len(arm["joints"])
     scale, m_diag, m_apparent = _arm_scales(robot)
-    rate = float(rng.choice(ARM_RATES))
-    duration = _duration(rng, rate, max_samples, 40.0, 160.0)
+    rate, duration = _rate_and_duration(rng, ARM_RATES, max_samples, 40.0, 160.0, 30.0)
     has = rng.uniform(size=n) < 0.5
     frac = np.where(has, rng.uniform(0.02, 0.15, n), 0.0)
     share = np.where(rng.uniform(size=n) < 0.5, 1.0, rng.uniform(size=n))
@@ -346,7 +352,7 @@ def draw(seed: int, kind: str = "lever", *, max_samples: int | None = None) -> S
     shortening it. The same seed and kind always give the same spec."""
     rng = np.random.default_rng([int(seed), 0x6D6D6770])
     if kind == "lever":
-        return _draw_lever(rng, int(seed), max_samples or 6000)
+        return _draw_lever(rng, int(seed), max_samples or 20000)
     if kind == "arm":
         kind = str(rng.choice(["panda", "ur5"]))
     if kind not in ARMS:
