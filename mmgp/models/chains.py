@@ -132,6 +132,9 @@ def bench_methods(modes_auto: bool = False) -> dict:
     return {
         "robust": make(lambda K, kw: RobustStartSEM(K, **kw)),
         "det": make(lambda K, kw: DeterministicSEM(K, **kw)),
+        "band": make(lambda K, kw: FrictionBandSEM(K, **kw)),
+        "physband": make(lambda K, kw: PhysicsBandSEM(K, **kw)),
+        "band_keep": make(lambda K, kw: FrictionBandSEM(K, exclude_rest=False, **kw)),
         "det_plain": make(lambda K, kw: DeterministicSEM(K, trim=(), start_cut=4.0, **kw)),
         "chains4": make(lambda K, kw: ChainSet(K, n_chains=4, **kw)),
         "chains4avg": make(lambda K, kw: ChainSet(K, n_chains=4, combine="average", **kw)),
@@ -179,3 +182,165 @@ class DeterministicSEM(RobustStartSEM):
             return super().fit(X, Y, **kw)
         finally:
             sem_module.ffbs_sample = sampler
+
+
+# ----------------------------------------------------------------------------------------------
+# Friction band (prototype): at rest the friction torque can be anywhere between its branches
+# ----------------------------------------------------------------------------------------------
+
+class FrictionBandSEM(RobustStartSEM):
+    """Samples whose sliding direction is uncertain (|dq| within ``band`` velocity scales of 0)
+    are scored against the band between the GP's friction branches, and kept out of the GPs'
+    supports (their torque is set-valued: stuck anywhere in the dry-friction band).
+
+    Needs the inputs laid out as mmgp.models.features builds them: [q, dq, ddq, tanh(dq / v_s)]
+    (n columns each). The smooth sign of a velocity known to +-``band`` v_s lies in
+    [tanh(dq / v_s - band), tanh(dq / v_s + band)]; the emission uses the GP mean at ``band_grid``
+    values of it and projects the torque onto their range (profile likelihood over the sign)."""
+
+    def __init__(self, n_modes: int = 1, *, band: float = 2.0, band_grid: int = 5, exclude_rest: bool = True,
+                 trim=(), start_cut: float = 4.0, **kw):
+        super().__init__(n_modes, trim=trim, start_cut=start_cut, **kw)
+        self.band = band
+        self.band_grid = band_grid
+        self.exclude_rest = exclude_rest
+
+    def fit(self, X, Y, **kw):
+        from .features import friction_velocity_scale
+
+        X = np.asarray(X, dtype=np.float64)
+        n = np.asarray(Y).reshape(len(Y), -1).shape[1]
+        if X.shape[1] < 4 * n:
+            raise ValueError("FrictionBandSEM needs the friction inputs tanh(dq / v_s)")
+        dq = X[:, n:2 * n]
+        z = dq / friction_velocity_scale(dq)
+        self._sign_lo, self._sign_hi = np.tanh(z - self.band), np.tanh(z + self.band)
+        self._rest = (self._sign_hi - self._sign_lo) > 0.5
+        self._n_out = n
+        return super().fit(X, Y, **kw)
+
+    def _gp_likelihoods(self, X, Y, members, hyper, optimise, rng):
+        rest_any = self._rest.any(1)
+        moving = members[~rest_any[members]]
+        if self.exclude_rest and len(moving) >= max(20, len(members) // 5):
+            members = moving
+        mean, var, gp, support = super()._gp_likelihoods(X, Y, members, hyper, optimise, rng)
+        R = np.flatnonzero(rest_any)
+        if not len(R):
+            return mean, var, gp, support
+        n = self._n_out
+        lo, hi, rest = self._sign_lo[R], self._sign_hi[R], self._rest[R]
+        cands = []
+        for g in np.linspace(0.0, 1.0, self.band_grid):
+            Xg = X[R].copy()
+            Xg[:, 3 * n:4 * n] = np.where(rest, lo + g * (hi - lo), Xg[:, 3 * n:4 * n])
+            if self._t_axis is not None and self.exclusion_s > 0:
+                from ..gp.windowed import windowed_predictive
+
+                m_g, _ = windowed_predictive(gp, Xg, self._t_axis[R], self._t_axis[support], self.exclusion_s)
+            else:
+                m_g, _ = gp.predict(Xg, include_noise=True)
+            cands.append(np.asarray(m_g).reshape(len(R), n))
+        cands = np.stack(cands)
+        # Profile over the sign: the torque projected onto the band is the emission's mean.
+        mean[R] = np.clip(Y[R], cands.min(0), cands.max(0))
+        return mean, var, gp, support
+
+
+# ----------------------------------------------------------------------------------------------
+# Physical friction mean fitted robustly on every moving sample (prototype)
+# ----------------------------------------------------------------------------------------------
+
+def bisquare_coefficients(basis: np.ndarray, Y: np.ndarray, *, shared: bool, n_irls: int = 8,
+                          c: float = 4.685) -> np.ndarray:
+    """Coefficients (n, p) of Y ~ basis @ coef by Tukey-bisquare IRLS (redescending: pushes on up
+    to ~40% of the samples get zero weight instead of Huber's bounded pull), started from the
+    Huber fit. ``shared``: one vector for all outputs."""
+    from .robust import fit_basis_coefficients, fit_shared_coefficients
+
+    N, n, p = basis.shape
+    coef = fit_shared_coefficients(basis, Y) if shared else fit_basis_coefficients(basis, Y)
+    rms = np.sqrt((basis.reshape(-1, p) ** 2).mean(0))
+    live = rms > 1e-12 * rms.max()
+    coef[:, ~live] = 0.0
+    basis = basis[:, :, live]
+    rms = rms[live]
+    coef_live = coef[:, live]
+    for _ in range(n_irls):
+        r = Y - np.einsum("tjp,jp->tj", basis, coef_live)
+        scale = 1.4826 * np.median(np.abs(r - np.median(r, 0)), 0) + 1e-12
+        u = r / (c * scale)
+        w = np.where(np.abs(u) < 1, (1 - u ** 2) ** 2, 0.0)
+        if shared:
+            sw = np.sqrt(w) / scale
+            A = (basis / rms * sw[:, :, None]).reshape(N * n, -1)
+            sol, *_ = np.linalg.lstsq(A, (Y * sw).ravel(), rcond=1e-7)
+            coef_live = np.tile(sol / rms, (n, 1))
+        else:
+            for j in range(n):
+                sw = np.sqrt(w[:, j])
+                sol, *_ = np.linalg.lstsq(basis[:, j, :] / rms * sw[:, None], Y[:, j] * sw, rcond=1e-7)
+                coef_live[j] = sol / rms
+    coef[:, live] = coef_live
+    return coef
+
+
+class PhysicsBandSEM(MultimodalSEM):
+    """K = 1 prototype: the mean is the given basis plus Coulomb and viscous friction columns
+    [tanh(dq_j / v_s), dq_j], fitted once by bisquare IRLS on every moving sample (labels play no
+    part, so a friction branch the chain calls disturbed is still learned); the GP models what is
+    left on moving samples; samples of uncertain sliding direction are scored against the
+    Coulomb band [c s_lo, c s_hi] (profile likelihood over the sign)."""
+
+    def __init__(self, n_modes: int = 1, *, band: float = 2.0, **kw):
+        super().__init__(n_modes, **kw)
+        self.band = band
+
+    def fit(self, X, Y, *, basis=None, **kw):
+        from .features import friction_velocity_scale
+
+        if self.n_modes != 1:
+            raise ValueError("prototype for one mode")
+        X = np.asarray(X, dtype=np.float64)
+        Y2 = np.asarray(Y, dtype=np.float64).reshape(len(Y), -1)
+        T, n = Y2.shape
+        dq = X[:, n:2 * n]
+        z = dq / friction_velocity_scale(dq)
+        lo, hi = np.tanh(z - self.band), np.tanh(z + self.band)
+        self._rest = (hi - lo) > 0.5
+        fric = np.zeros((T, n, 2 * n))
+        for j in range(n):
+            fric[:, j, j] = np.tanh(z[:, j])
+            fric[:, j, n + j] = dq[:, j]
+        self._p0 = 0 if basis is None else basis.shape[2]
+        full = fric if basis is None else np.concatenate([np.asarray(basis, dtype=np.float64), fric], axis=2)
+        moving = ~self._rest.any(1)
+        if moving.sum() < max(20, T // 5):
+            moving = np.ones(T, bool)
+        self._coef_fixed = bisquare_coefficients(full[moving], Y2[moving], shared=self.shared_basis)
+        self._band_lo, self._band_hi = lo, hi
+        return super().fit(X, Y, basis=full, **kw)
+
+    def _fit_basis(self, basis, Y):
+        return self._coef_fixed
+
+    def _mode_likelihoods(self, X, Y, members, hyper, optimise, rng):
+        coef = self._coef_fixed
+        basis = self._basis
+        n = Y.shape[1]
+        p0 = self._p0
+        coulomb = coef[np.arange(n), p0 + np.arange(n)]                        # (n,)
+        offset = np.einsum("tjp,jp->tj", basis, coef)
+        moving = members[~self._rest.any(1)[members]]
+        if len(moving) >= max(20, len(members) // 5):
+            members = moving
+        mean, var, gp, support = self._gp_likelihoods(X, Y - offset, members, hyper, optimise, rng)
+        mean = mean + offset
+        # Rest samples: the Coulomb term is anywhere in [c s_lo, c s_hi]; project the torque on it.
+        s_now = basis[:, np.arange(n), p0 + np.arange(n)]
+        base = mean - coulomb * s_now
+        a, b = coulomb * self._band_lo, coulomb * self._band_hi
+        band_lo, band_hi = np.minimum(a, b), np.maximum(a, b)
+        rest = self._rest
+        mean = np.where(rest, base + np.clip(Y - base, band_lo, band_hi), mean)
+        return mean, var, gp, support, coef
