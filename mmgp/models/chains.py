@@ -163,6 +163,8 @@ def bench_methods(modes_auto: bool = False) -> dict:
         "det": make(lambda K, kw: DeterministicSEM(K, **kw)),
         "band": make(lambda K, kw: FrictionBandSEM(K, **kw)),
         "physband": make(lambda K, kw: PhysicsBandSEM(K, **kw)),
+        "prior": make(lambda K, kw: PriorSEM(K, **kw)),
+        "priorband": make(lambda K, kw: PriorBandSEM(K, **kw)),
         "band_keep": make(lambda K, kw: FrictionBandSEM(K, exclude_rest=False, **kw)),
         "det_plain": make(lambda K, kw: DeterministicSEM(K, trim=(), start_cut=4.0, **kw)),
         "chains4": make(lambda K, kw: ChainSet(K, n_chains=4, **kw)),
@@ -380,3 +382,65 @@ class PhysicsBandSEM(MultimodalSEM):
         rest = self._rest
         mean = np.where(rest, base + np.clip(Y - base, band_lo, band_hi), mean)
         return mean, var, gp, support, coef
+
+
+# ----------------------------------------------------------------------------------------------
+# Push priors in seconds and a push-size floor (prototype scaffolding: MultimodalSEM's inline
+# M-step is reached through two module-level names it looks up at call time)
+# ----------------------------------------------------------------------------------------------
+
+class _FloorNumpy:
+    """numpy for sem.py, except that its one ``np.maximum`` (sigma_d's floor of 4 x the median
+    predictive variance) floors at ``z2`` x that median instead."""
+
+    def __init__(self, z2: float):
+        self._z2 = z2
+
+    def __getattr__(self, name):
+        return getattr(np, name)
+
+    def maximum(self, a, b):
+        return np.maximum(a, b * (self._z2 / 4.0))
+
+
+class PushPriors:
+    """Mixin: pushes last ``push_s`` s and come every ``gap_s`` s a priori, whatever the sampling
+    rate (``n_prior`` pseudo-pushes added to the transition counts; MultimodalSEM's own prior is
+    per sample: p_enter 0.05, i.e. a push every 0.2 s at 100 Hz), and the push spread sigma_d is
+    at least ``push_z`` predictive standard deviations."""
+
+    push_s = 1.0
+    gap_s = 5.0
+    n_prior = 3.0
+    push_z = 5.0
+
+    def fit(self, X, Y, **kw):
+        from . import sem as sem_module
+
+        t = kw.get("t")
+        dt = float(np.median(np.diff(np.asarray(t)))) if t is not None and len(t) > 1 else 0.05
+        counts, numpy_ = sem_module._transition_counts, sem_module.np
+        n0, push, gap = self.n_prior, self.push_s / dt, self.gap_s / dt
+
+        def with_prior(states, K, starts):
+            c = dict(counts(states, K, starts))
+            c["disturbed"] += n0 * push
+            c["leave"] += n0
+            c["undisturbed"] += n0 * gap
+            c["enter"] += n0
+            return c
+
+        sem_module._transition_counts = with_prior
+        sem_module.np = _FloorNumpy(self.push_z ** 2)
+        try:
+            return super().fit(X, Y, **kw)
+        finally:
+            sem_module._transition_counts, sem_module.np = counts, numpy_
+
+
+class PriorSEM(PushPriors, MultimodalSEM):
+    pass
+
+
+class PriorBandSEM(PushPriors, FrictionBandSEM):
+    pass
