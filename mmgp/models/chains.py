@@ -164,7 +164,13 @@ def bench_methods(modes_auto: bool = False) -> dict:
         "band": make(lambda K, kw: FrictionBandSEM(K, **kw)),
         "physband": make(lambda K, kw: PhysicsBandSEM(K, **kw)),
         "prior": make(lambda K, kw: PriorSEM(K, **kw)),
+        "prior50": make(lambda K, kw: StrongPriorSEM(K, **kw)),
+        "prior50band": make(lambda K, kw: StrongPriorBandSEM(K, **kw)),
         "priorband": make(lambda K, kw: PriorBandSEM(K, **kw)),
+        "prior_robust": make(lambda K, kw: PriorRobustSEM(K, **kw)),
+        "prior_chains4": make(lambda K, kw: ChainSet(K, n_chains=4, criterion="robust_pred", chain_class=PriorSEM, **kw)),
+        "prior_robust_chains4": make(lambda K, kw: ChainSet(K, n_chains=4, criterion="robust_pred",
+                                                          chain_class=PriorRobustSEM, **kw)),
         "band_keep": make(lambda K, kw: FrictionBandSEM(K, exclude_rest=False, **kw)),
         "det_plain": make(lambda K, kw: DeterministicSEM(K, trim=(), start_cut=4.0, **kw)),
         "chains4": make(lambda K, kw: ChainSet(K, n_chains=4, **kw)),
@@ -444,3 +450,18 @@ class PriorSEM(PushPriors, MultimodalSEM):
 
 class PriorBandSEM(PushPriors, FrictionBandSEM):
     pass
+
+
+class PriorRobustSEM(PushPriors, RobustStartSEM):
+    pass
+
+
+class StrongPriorSEM(PriorSEM):
+    """PriorSEM with the push timing prior worth 50 pushes (durations and gaps then follow the
+    prior unless a log holds far more evidence)."""
+
+    n_prior = 50.0
+
+
+class StrongPriorBandSEM(PriorBandSEM):
+    n_prior = 50.0
