@@ -175,6 +175,7 @@ def bench_methods(modes_auto: bool = False) -> dict:
         "det_plain": make(lambda K, kw: DeterministicSEM(K, trim=(), start_cut=4.0, **kw)),
         "chains4": make(lambda K, kw: ChainSet(K, n_chains=4, **kw)),
         "chains6rp": make(lambda K, kw: ChainSet(K, n_chains=6, criterion="robust_pred", **kw)),
+        "pr_chains6": make(lambda K, kw: ChainSet(K, n_chains=6, criterion="robust_pred", chain_class=PriorRobustSEM, **kw)),
         "chains4avg": make(lambda K, kw: ChainSet(K, n_chains=4, combine="average", **kw)),
         "robust_chains4": make(lambda K, kw: ChainSet(K, n_chains=4, chain_class=RobustStartSEM, **kw)),
     }
