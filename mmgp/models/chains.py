@@ -175,6 +175,9 @@ def bench_methods(modes_auto: bool = False) -> dict:
         "det_plain": make(lambda K, kw: DeterministicSEM(K, trim=(), start_cut=4.0, **kw)),
         "chains4": make(lambda K, kw: ChainSet(K, n_chains=4, **kw)),
         "chains6rp": make(lambda K, kw: ChainSet(K, n_chains=6, criterion="robust_pred", **kw)),
+        "prb": make(lambda K, kw: StrongPriorRobustBandSEM(K, **kw)),
+        "prb_chains6": make(lambda K, kw: ChainSet(K, n_chains=6, criterion="robust_pred",
+                                                 chain_class=StrongPriorRobustBandSEM, **kw)),
         "pr_chains6": make(lambda K, kw: ChainSet(K, n_chains=6, criterion="robust_pred", chain_class=PriorRobustSEM, **kw)),
         "chains4avg": make(lambda K, kw: ChainSet(K, n_chains=4, combine="average", **kw)),
         "robust_chains4": make(lambda K, kw: ChainSet(K, n_chains=4, chain_class=RobustStartSEM, **kw)),
@@ -466,3 +469,12 @@ class StrongPriorSEM(PriorSEM):
 
 class StrongPriorBandSEM(PriorBandSEM):
     n_prior = 50.0
+
+
+class StrongPriorRobustBandSEM(StrongPriorBandSEM):
+    """Push priors in seconds (50 pseudo-pushes), the friction band at rest, the trimmed start."""
+
+    def __init__(self, n_modes: int = 1, **kw):
+        kw.setdefault("trim", (0.8, 0.6))
+        kw.setdefault("start_cut", 3.0)
+        super().__init__(n_modes, **kw)
