@@ -151,6 +151,7 @@ class Outcome:
 
 
 RRP_BUDGET_S = 600.0
+RRP_MAX_VALUES = 1000          # samples x joints attempted: the replica (330) took 392 s (loaded machine)
 SOURCE_SETTINGS = {"estep": "gibbs", "exclusion_s": 0.0, "friction_feature": False, "mean_basis": "none"}
 
 
@@ -267,6 +268,9 @@ def rrp(case: Case, prep: Prepared, seed: int) -> Outcome:
     from gpytorch.mlls import ExactMarginalLogLikelihood
 
     X, Y = prep.feats.X, prep.feats.Y
+    if Y.size > RRP_MAX_VALUES:
+        raise TimeoutError(f"{len(Y)} samples x {Y.shape[1]} joints: beyond {RRP_BUDGET_S:.0f} s "
+                           f"(330 samples took 392 s on the replica; cost grows ~T^3)")
     t0 = time.perf_counter()
     Xt = torch.as_tensor((X - X.min(0)) / (np.ptp(X, 0) + 1e-12), dtype=torch.float64)
     flags = np.zeros(len(Y), bool)
