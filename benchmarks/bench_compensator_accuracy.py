@@ -22,10 +22,48 @@ import time
 
 import numpy as np
 
-from mmgp.compensator.field import IndependentJointGPs, check_passivity, compensator_from_model
+from mmgp.compensator import check_passivity, compensator_from_model
+from mmgp.gp.gradient_field import RBFGP
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 HOME = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+
+
+class IndependentJointGPs:
+    """Unconstrained peer: one RBF GP per joint torque (not a gradient field in general).
+
+    ``storage`` is the naive candidate a per-joint design would use: each joint's torque
+    integrated along its own axis (an erf in that coordinate times the Gaussian in the others).
+    Its gradient matches the torque only on the diagonal, and the loop work of ``torque`` is
+    generally non-zero: check_passivity must reject it.
+    """
+
+    def __init__(self, max_hyper_points=500, max_iter=100, seed=0):
+        self.max_hyper_points, self.max_iter, self.seed = max_hyper_points, max_iter, seed
+
+    def fit(self, Q, Y):
+        self.gps_ = [RBFGP(self.max_hyper_points, self.max_iter, seed=self.seed).fit(Q, Y[:, i])
+                     for i in range(Y.shape[1])]
+        self.n_joints = Q.shape[1]
+        self.bounds = np.stack([Q.min(0), Q.max(0)])
+        return self
+
+    def torque(self, q):
+        q2 = np.asarray(q, dtype=np.float64).reshape(-1, self.n_joints)
+        out = np.stack([g.predict(q2) for g in self.gps_], axis=1)
+        return out[0] if np.ndim(q) == 1 else out
+
+    def storage(self, q):
+        from scipy.special import erf
+
+        q2 = np.asarray(q, dtype=np.float64).reshape(-1, self.n_joints)
+        S = np.zeros(q2.shape[0])
+        for i, g in enumerate(self.gps_):
+            U = (q2[:, None, :] - g.support_[None]) / g.lengthscales_
+            others = np.exp(-0.5 * (np.sum(U * U, axis=2) - U[:, :, i] ** 2))
+            amp = g.signal_var_ * g.lengthscales_[i] * np.sqrt(np.pi / 2) * g.alpha_[:, 0]
+            S += (erf(U[:, :, i] / np.sqrt(2.0)) * others) @ amp
+        return float(S[0]) if np.ndim(q) == 1 else S
 
 
 class Truth:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mmgp.compensator.field import Compensator, compensator_from_model, load_compensator
+from mmgp.compensator import Compensator, compensator_from_model, load_compensator
 
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 

@@ -1,4 +1,4 @@
-"""Benchmark of the sim-vs-real diagnosis (mmgp.diagnose) on concealed-effect MuJoCo cases and
+"""Benchmark of the sim-vs-real diagnosis (mmgp.diagnosis.Diagnoser) on concealed-effect MuJoCo cases and
 on the real Panda log of Gaz et al. (RA-L 2019).
 
 Prints: precision and recall of (effect, joint/link) pairs over the standard cases (targets
@@ -7,6 +7,8 @@ none), the runtime of a 10,000-sample 7-DOF diagnosis (target < 2 min on 2 cores
 Panda findings with held-out error per stage, next to the friction Gaz et al. identified.
 
 Usage: python benchmarks/bench_diagnose.py [--samples 4000] [--seeds 1] [--cases name,name] [--no-real]
+[--fixed-windows]  (``--fixed-windows``: estimate missing derivatives with the fixed 0.05 s Savitzky-Golay
+window that ``diagnose`` used before it shared ``train``'s cross-validated windows, for comparison)
 """
 from __future__ import annotations
 
@@ -19,8 +21,15 @@ from pathlib import Path
 import numpy as np
 
 from mmgp.sim import concealed as C
-from mmgp.diagnosis.pipeline import diagnose
-from mmgp.data.logs import RobotLog
+from mmgp.data.differentiation import SavitzkyGolay
+from mmgp.diagnosis import Diagnoser
+
+#: the differentiator part every run uses (None: the Diagnoser's default, cross-validated windows)
+DIFFERENTIATOR = None
+
+
+def diagnose(log, robot, **settings):
+    return Diagnoser(differentiator=DIFFERENTIATOR, **settings).fit(log, robot).result_
 
 MAGNITUDES = {"tau_c", "b", "inertia", "k", "offset", "mass", "beta"}
 
@@ -73,7 +82,7 @@ def run_cases(samples: int, seeds: list[int], names: list[str] | None, gp: bool)
             t_sim = time.perf_counter() - t0
             robot = C.nominal_robot(s)
             t0 = time.perf_counter()
-            res = diagnose(C.recording_to_log(rec), robot, config={"gp": gp, "plots": False})
+            res = diagnose(C.recording_to_log(rec), robot, gp=gp, plots=False)
             t_diag = time.perf_counter() - t0
             tp, fp, fn, rel, extra, missed = score_case(res.findings, truth)
             TP, FP, FN = TP + tp, FP + fp, FN + fn
@@ -127,7 +136,7 @@ def runtime_10k():
 
     torch.set_num_threads(2)
     t0 = time.perf_counter()
-    res = diagnose(C.recording_to_log(rec), robot, config={"gp": True, "plots": True})
+    res = diagnose(C.recording_to_log(rec), robot, gp=True, plots=True)
     el = time.perf_counter() - t0
     tp, fp, fn, rel, _, _ = score_case(res.findings, truth)
     print(f"\nruntime of a 10,000-sample 7-DOF diagnosis (with GP stage): {el:.1f} s  (target < 120 s); "
@@ -142,19 +151,18 @@ def real_panda(root="/work/shared/datasets/panda_gaz2019"):
         return
     import tempfile
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "datasets"))
-    from convert_real import convert_panda_gaz2019
+    from mmgp.convert import convert
     from mmgp.data.logs import read_log
 
     with tempfile.TemporaryDirectory() as tmp:
         # the project's converter (ddq left out: diagnose estimates it from dq)
-        path = convert_panda_gaz2019(Path(tmp))[0]
+        (path,) = convert(root, Path(tmp) / "panda_gaz2019.parquet")
         log = read_log(path)
     from mmgp.physics.robot import RobotModel
 
     robot = RobotModel.from_name("panda", [f"panda_joint{i}" for i in range(1, 8)])
     t0 = time.perf_counter()
-    res = diagnose(log, robot, config={"gp": True, "plots": False})
+    res = diagnose(log, robot, gp=True, plots=False)
     print(f"\nreal Panda (Gaz et al. 2019 exciting trajectory, {log.n_samples} samples, "
           f"{time.perf_counter() - t0:.1f} s):")
     for f in res.findings:
@@ -188,7 +196,11 @@ def main(argv=None):
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--no-runtime", action="store_true")
     ap.add_argument("--json", type=str, default=None)
+    ap.add_argument("--fixed-windows", action="store_true",
+                    help="fixed 0.05 s Savitzky-Golay windows for missing derivatives (the former diagnose policy)")
     a = ap.parse_args(argv)
+    global DIFFERENTIATOR
+    DIFFERENTIATOR = SavitzkyGolay() if a.fixed_windows else None
     seeds = [int(s) for s in a.seeds.split(",")]
     names = a.cases.split(",") if a.cases else None
     rows = run_cases(a.samples, seeds, names, a.gp)

@@ -18,11 +18,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mmgp.config import load_config
+from mmgp.config import load_settings
 from mmgp.evaluation.metrics import classification_figures
 from mmgp.data.logs import read_labels
-from mmgp.models.trained import labels_frame, train
-from mmgp.sim.recording import actuator_replica
+from mmgp import MultimodalGP
+from mmgp.sim import actuator_replica
 
 
 def main() -> int:
@@ -37,15 +37,15 @@ def main() -> int:
             rec.write(log, lab)
             for estep in table:
                 t0 = time.perf_counter()
-                res = train([log], load_config(estep=estep))
+                res = MultimodalGP(estep=estep).fit(log)
                 secs = time.perf_counter() - t0
-                pred = labels_frame(res)
+                pred = res.labels_
                 f = classification_figures(pred, read_labels(lab, t=pred["t"].to_numpy()))
                 table[estep].append((f["accuracy"], f["unperturbed_correct"], f["perturbed_missed"],
-                                     res.report["n_sweeps"], int(res.report["converged"]), secs))
+                                     res.report_["n_sweeps"], int(res.report_["converged"]), secs))
                 print(f"seed {seed} {estep:5s}: accuracy {f['accuracy']:.3f} unperturbed correct "
                       f"{f['unperturbed_correct']:.3f} perturbed missed {f['perturbed_missed']:.3f} "
-                      f"sweeps {res.report['n_sweeps']} converged {res.report['converged']} {secs:.1f} s", flush=True)
+                      f"sweeps {res.report_['n_sweeps']} converged {res.report_['converged']} {secs:.1f} s", flush=True)
     print(f"\n{'E-step':<8}{'accuracy':>10}{'unpert. correct':>17}{'pert. missed':>14}{'sweeps':>8}{'converged':>11}{'seconds':>9}")
     for estep, rows in table.items():
         a = np.array(rows, dtype=float)

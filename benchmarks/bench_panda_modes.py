@@ -20,12 +20,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from baselines import threshold_gp_labels, trimmed_gp_labels
-from mmgp.config import load_config
+from mmgp.config import load_settings
 from mmgp.evaluation.metrics import classification_figures
 from mmgp.data.logs import read_labels
-from mmgp.models.trained import labels_frame, train
+from mmgp import MultimodalGP
 from mmgp.physics.robot import load_robot
-from mmgp.sim.recording import panda_modes
+from mmgp.sim import panda_modes
 
 
 def main() -> int:
@@ -55,24 +55,24 @@ def run_seed(args, seed):
         log, lab = Path(tmp) / "panda.parquet", Path(tmp) / "panda_labels.parquet"
         rec.write(log, lab)
         print(f"generated {args.samples} samples in {time.perf_counter() - t0:.1f} s", flush=True)
-        cfg = load_config(args.config, modes=2, estep=args.estep)
+        cfg = load_settings(args.config, "train", MultimodalGP, n_modes=2, estep=args.estep)
         robot = load_robot(log_path=log)
         t0 = time.perf_counter()
-        res = train([log], cfg, robot=robot,
-                    progress=lambda r: print(f"  sweep {r.sweep} changed {r.changed:.3f} disturbed {r.n_disturbed} "
-                                             f"modes {r.mode_sizes} {r.seconds:.1f} s", flush=True))
+        res = MultimodalGP(robot=robot, **cfg,
+                           progress=lambda r: print(f"  sweep {r.sweep} changed {r.changed:.3f} disturbed {r.n_disturbed} "
+                                                    f"modes {r.mode_sizes} {r.seconds:.1f} s", flush=True)).fit(log)
         secs = time.perf_counter() - t0
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        pred = labels_frame(res)
+        pred = res.labels_
         truth = read_labels(lab, t=pred["t"].to_numpy())
         ours = classification_figures(pred, truth)
-        print(f"\nmmgp (K=2 + disturbance, {res.report['n_sweeps']} sweeps): mode ARI {ours['mode_adjusted_rand_index']:.3f}, "
+        print(f"\nmmgp (K=2 + disturbance, {res.report_['n_sweeps']} sweeps): mode ARI {ours['mode_adjusted_rand_index']:.3f}, "
               f"disturbed F1 {ours['disturbed_f1']:.3f} (precision {ours['disturbed_precision']:.3f}, recall "
               f"{ours['disturbed_recall']:.3f}); judged {ours['n_judged']}, ambiguous left out {ours['n_ambiguous_left_out']}")
-        print(f"whole pipeline (load, derivatives, RNEA, SEM) {secs:.1f} s; SEM {res.report['timings']['total_s']:.1f} s; "
+        print(f"whole pipeline (load, derivatives, RNEA, SEM) {secs:.1f} s; SEM {res.report_['timings']['total_s']:.1f} s; "
               f"peak RSS {peak_mb:.0f} MB")
         if not args.no_baselines:
-            X, Y = res.features.X, res.features.Y
+            X, Y = res.features_.X, res.features_.Y
             for name, fn in (("GP + 3-sigma threshold", threshold_gp_labels), ("trimmed GP", trimmed_gp_labels)):
                 t1 = time.perf_counter()
                 d = fn(X, Y)
@@ -83,7 +83,7 @@ def run_seed(args, seed):
                 print(f"baseline {name}: disturbed F1 {f['disturbed_f1']:.3f} (precision {f['disturbed_precision']:.3f}, "
                       f"recall {f['disturbed_recall']:.3f}); modes: none (ARI {f['mode_adjusted_rand_index']:.3f}); "
                       f"{time.perf_counter() - t1:.1f} s")
-        return ours["mode_adjusted_rand_index"], ours["disturbed_f1"], res.report["timings"]["total_s"]
+        return ours["mode_adjusted_rand_index"], ours["disturbed_f1"], res.report_["timings"]["total_s"]
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ Rigid-body model: mmgp.robot.RobotModel.from_name("panda", n_joints=7): example-
 inertials, no friction, no motor inertia. Evaluation: 5 contiguous time blocks
 (mmgp.signals.time_block_folds, ``--gap-s`` seconds dropped from training on each side of the
 test block); per joint nMSE = MSE / variance of the held-out torques, pooled over the folds.
-GP: mmgp.gp_sparse.make_gp (exact below 3,000 training samples), inputs [q, dq, ddq].
+GP: mmgp.gp.sparse.make_gp (exact below 3,000 training samples), inputs [q, dq, ddq].
 
 Run: python benchmarks/bench_panda_semiparametric.py [--rate 100] [--gap-s 0.2]
 """

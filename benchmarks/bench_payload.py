@@ -1,4 +1,4 @@
-"""Payload identification benchmarks (mmgp.robot.fit_payload on tau - RNEA(nominal)).
+"""Payload identification benchmarks (mmgp.physics.payload.fit_payload on tau - RNEA(nominal)).
 
 Parts (``--part``, default all):
 
@@ -9,7 +9,7 @@ Parts (``--part``, default all):
   figure: the same fit from MuJoCo's true, noise-free signals (what the data could give at best).
 * ``modes``: mmgp.sim.panda_modes (payload switching 0 / 2 kg, with pushes): per-mode fit
   weighted by the true mode labels (pushed samples left out by the true labels), and by the
-  modes and disturbance flags of mmgp's multimodal EM (``mmgp.model.train``, modes=2,
+  modes and disturbance flags of mmgp's multimodal EM (``mmgp.MultimodalGP``, n_modes=2,
   semiparametric residual).
 * ``ur10``: the real UR10 pick-and-place log (polydoros_ur10_pickplace, authors: a 5 kg object):
   what the logged torques can and cannot say about a payload at ``tool0``.
@@ -30,9 +30,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mmgp.sim import recording as sim
+import mmgp.sim as sim
 from mmgp.data.logs import RobotLog, read_log
-from mmgp.physics.robot import fit_payload, load_robot, point_mass_parameters
+from mmgp.physics.inertial import point_mass_parameters
+from mmgp.physics.payload import fit_payload
+from mmgp.physics.robot import load_robot
 from mmgp.data.differentiation import SavitzkyGolay, complete_derivatives
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
@@ -144,22 +146,20 @@ def part_modes(run_em: bool = True) -> None:
     print("(com of a ~0 kg mode is meaningless: mass * com is what the data determine)")
     if not run_em:
         return
-    from mmgp.config import TrainConfig
-    from mmgp.models.trained import train
+    from mmgp import MultimodalGP
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "modes.parquet"
         rec.write(path)
-        cfg = TrainConfig(modes=2, semiparametric="residual", rate_hz=20.0, seed=0)
         t0 = time.perf_counter()
-        tr = train([path], cfg, robot=robot)
+        tr = MultimodalGP(n_modes=2, semiparametric="residual", rate_hz=20.0, seed=0, robot=robot).fit(path)
         dt_em = time.perf_counter() - t0
-    lg = tr.logs[0]
-    sem = tr.sem
+    lg = tr.logs_[0]
+    sem = tr.sem_
     # The EM ran on the 20 Hz rows; pick the matching truth rows.
     rows = np.searchsorted(rec.t, lg.t)
     ari = adjusted_rand_score(mode[rows][clean[rows]], sem.labels_[clean[rows]])
-    print(f"EM (mmgp.model.train, modes=2, residual, 20 Hz: {len(lg.t)} samples): {dt_em:.0f} s, "
+    print(f"EM (MultimodalGP, n_modes=2, residual, 20 Hz: {len(lg.t)} samples): {dt_em:.0f} s, "
           f"mode ARI vs truth {ari:.3f}, {int(sem.disturbed_.sum())} flagged disturbed")
     # Payload fits on the EM's rows, with the identification derivatives of the full-rate log.
     q, dq, ddq, r = log.q[rows], log.dq[rows], log.ddq[rows], res[rows]
@@ -184,16 +184,16 @@ def _runs(mask: np.ndarray, min_len: int) -> list[tuple[int, int]]:
 
 def part_ur10() -> None:
     print("\n== UR10 pick-and-place (polydoros_ur10_pickplace), payload at tool0; authors: 5 kg ==")
-    sys.path.insert(0, str(REPO / "datasets"))
-    import convert_real as cr
+    from mmgp.convert import convert
+    from mmgp.errors import InputError
 
     try:
-        cr.dataset_dir("polydoros_ur10_pickplace")
         with tempfile.TemporaryDirectory() as tmp:
-            (path,) = cr.convert("polydoros_ur10_pickplace", tmp)
+            (path,) = convert(REPO.parent / "shared" / "datasets" / "polydoros_ur10_pickplace",
+                              Path(tmp) / "ur10.parquet")
             log = read_log(path)
             robot = load_robot(log_path=path)
-    except cr.DatasetMissing as exc:
+    except InputError as exc:
         print(f"skipped: {exc}")
         return
     tau = log.tau

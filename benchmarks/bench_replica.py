@@ -21,11 +21,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from baselines import threshold_gp_labels, trimmed_gp_labels
-from mmgp.config import load_config
+from mmgp.config import load_settings
 from mmgp.evaluation.metrics import SOURCE_FIGURES, classification_figures
 from mmgp.data.logs import read_labels
-from mmgp.models.trained import labels_frame, train
-from mmgp.sim.recording import actuator_replica
+from mmgp import MultimodalGP
+from mmgp.sim import actuator_replica
 
 
 def main() -> int:
@@ -35,7 +35,7 @@ def main() -> int:
     ap.add_argument("--no-baselines", action="store_true")
     ap.add_argument("--config", default=None)
     args = ap.parse_args()
-    cfg = load_config(args.config, estep=args.estep)
+    cfg = load_settings(args.config, "train", MultimodalGP, estep=args.estep)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
@@ -46,14 +46,14 @@ def main() -> int:
                 log, lab = Path(tmp) / f"log{seed}.parquet", Path(tmp) / f"lab{seed}.parquet"
                 rec.write(log, lab)
             t0 = time.perf_counter()
-            res = train([log], cfg)
+            res = MultimodalGP(**cfg).fit(log)
             secs = time.perf_counter() - t0
-            pred = labels_frame(res)
+            pred = res.labels_
             truth = read_labels(lab, t=pred["t"].to_numpy())
             ours = classification_figures(pred, truth)
-            row = {"seed": seed, "ours": ours, "seconds": secs, "sweeps": res.report["n_sweeps"]}
+            row = {"seed": seed, "ours": ours, "seconds": secs, "sweeps": res.report_["n_sweeps"]}
             if not args.no_baselines:
-                X, Y = res.features.X, res.features.Y
+                X, Y = res.features_.X, res.features_.Y
                 for name, fn in (("gp_3sigma", threshold_gp_labels), ("trimmed_gp", trimmed_gp_labels)):
                     d = fn(X, Y)
                     p = pred.copy()

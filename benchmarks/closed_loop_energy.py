@@ -16,11 +16,12 @@ damping: a "pure stiffness", and ``K = 0``: "zero impedance"):
     at 20 Hz, quasi-static with pushes; Panda: ``mmgp.sim.simulate`` with the payload, exciting
     sum-of-sinusoids motion within +-0.6 rad of the home pose, back at rest there every 5 s, under
     computed torque on the payload-free model, pushes, sensor noise, 100 Hz), written as a contract log,
-    ``mmgp.model.train`` (lever: no robot; Panda: ``load_robot(robot="panda")``, so the GP learns
-    the residual on top of the rigid-body model), ``compensator_from_model(result.model)``,
-    ``.save``, ``mmgp.load_compensator`` (numpy) in the 1 kHz loop,
-  * ``learned, sign-averaged`` (diagnostic): the same trained model with its Coulomb input
-    averaged over +-1 instead of set to tanh(0) = 0 (:class:`SignAveragedModel`), exported alike,
+    ``mmgp.MultimodalGP`` (lever: no robot; Panda: ``load_robot(robot="panda")``, so the GP
+    learns the residual on top of the rigid-body model), ``compensator_from_model(result)``
+    (whose target is the library's own ``MultimodalGP.nominal_torque``: GP averaged over both
+    friction signs, payload mean and rigid-body part included), ``.save``, ``mmgp.load_compensator``
+    (numpy) in the 1 kHz loop; "learned model (before export)" is ``nominal_torque`` itself
+    (static torque figures only),
   * ``stand-in``: the same export applied to the plant's exact static torque (MuJoCo
     ``qfrc_bias`` at rest, including the payload) on random configurations: what the export does
     to a perfect model.
@@ -52,30 +53,24 @@ import json
 import time
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
 import mmgp
-from mmgp.compensator.field import compensator_from_model, load_compensator
-from mmgp.config import load_config
-from mmgp.models.trained import train
-from mmgp.physics.robot import load_robot
-from mmgp.sim.recording import PANDA, PANDA_JOINTS, REPLICA, Push, actuator_replica, build_mjcf, panda_urdf_path, replica_mjcf
-from mmgp.sim.recording import simulate as record
+from mmgp.compensator import compensator_from_model, load_compensator
+from mmgp import MultimodalGP
+from mmgp.config import load_settings
+from mmgp.physics.robot import RobotModel, load_robot
+from mmgp.sim import PANDA, PANDA_JOINTS, REPLICA, Push, actuator_replica, load_model, panda_urdf_path, replica_mjcf
+from mmgp.sim import simulate as record
 
 HOME = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
 G = 9.81
 ENVELOPE_S = 5.0  # s, Panda training reference: back at rest at the home pose this often
 
 
-def _mj():
-    import mujoco
-
-    return mujoco
-
-
 def _enable_energy(model):
-    mj = _mj()
-    model.opt.enableflags |= int(mj.mjtEnableBit.mjENBL_ENERGY)
+    model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
     return model
 
 
@@ -86,49 +81,19 @@ class StaticTorqueModel:
 
     def __init__(self, mj_model, lo, hi, n, names, seed=0):
         self.m = mj_model
-        self.d = _mj().MjData(mj_model)
+        self.d = mujoco.MjData(mj_model)
         rng = np.random.default_rng(seed)
         self.support_q_ = lo + (hi - lo) * rng.random((n, len(lo)))
         self.joint_names_ = list(names)
 
     def nominal_torque(self, q):
-        mj = _mj()
         q = np.atleast_2d(q)
         out = np.empty_like(q)
         for i, qi in enumerate(q):
             self.d.qpos[:] = qi
             self.d.qvel[:] = 0.0
-            mj.mj_forward(self.m, self.d)
+            mujoco.mj_forward(self.m, self.d)
             out[i] = self.d.qfrc_bias
-        return out
-
-
-class SignAveragedModel:
-    """Diagnostic, not the product: a trained model's position-only torque with its Coulomb input
-    ``tanh(dq / v_s)`` averaged over +1 and -1 instead of set to ``tanh(0) = 0``.
-
-    ``TrainedModel.nominal_torque`` evaluates the GP at ``dq = 0``, where the friction input is 0;
-    on a recording in motion almost every sample has it near +-1, so the GP is asked for a value
-    between two data clusters it never saw (and on a stuck joint the torque there is anything in
-    the friction band). The mean of the two branches cancels friction that is odd in dq.
-    ``nominal_torque(q (T, n)) -> (T, n)`` N*m; ``support_q_``, ``joint_names_`` as the model's.
-    """
-
-    def __init__(self, model):
-        if model.friction_scale_ is None or (model.robot_spec and model.config.semiparametric == "feature"):
-            raise ValueError("needs a model with the friction input and a residual (or no) rigid-body part")
-        self.model = model
-        self.support_q_ = model.support_q_
-        self.joint_names_ = model.joint_names_
-
-    def nominal_torque(self, q):
-        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-        z = np.zeros_like(q)
-        gp = self.model.gp(0)
-        out = 0.5 * sum(gp.predict(np.concatenate([q, z, z, s + z], axis=1))[0].reshape(q.shape)
-                        for s in (1.0, -1.0))
-        if self.model.robot_spec:
-            out = out + self.model.robot.rnea(q, z, z)
         return out
 
 
@@ -142,10 +107,9 @@ def panda_recording(urdf, payload, lo, hi, n_samples, seed):
     ``panda_modes``: 10-40 N in a random world direction at a random link among panda_link3..7,
     0.3-2 s long, every 1.5-5 s.
     """
-    mj = _mj()
     rng = np.random.default_rng(seed)
-    model = mj.MjModel.from_xml_string(build_mjcf(urdf, PANDA_JOINTS, damping=0.3, payload=payload))
-    nominal = mj.MjModel.from_xml_string(build_mjcf(urdf, PANDA_JOINTS))
+    model = load_model(urdf, PANDA_JOINTS, damping=0.3, payload=payload)
+    nominal = load_model(urdf, PANDA_JOINTS)
     centre, half = 0.5 * (lo + hi), 0.45 * (hi - lo)
     w = 2 * np.pi * rng.uniform(0.05, 0.4, (7, 3))
     a = rng.uniform(0.3, 1.0, (7, 3))
@@ -182,18 +146,18 @@ def panda_recording(urdf, payload, lo, hi, n_samples, seed):
 
 def learned_compensator(name, rec, args, out_dir, max_support):
     """Write ``rec`` as a contract log, train with mmgp, export, save and load back. Returns
-    (compensator as loaded from the file, TrainResult, timings dict)."""
+    (compensator as loaded from the file, the fitted MultimodalGP, timings dict)."""
     log = out_dir / f"{name}_log.parquet"
     rec.write(log)
-    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "default.yaml",
-                      max_sweeps=args.max_sweeps, seed=args.seed)
+    cfg = load_settings(Path(__file__).resolve().parents[1] / "configs" / "default.yaml", "train", MultimodalGP,
+                        max_sweeps=args.max_sweeps, seed=args.seed)
     robot = None if name == "lever" else load_robot(robot="panda", log_path=log)
     t0 = time.perf_counter()
-    result = train([log], cfg, robot=robot)
+    result = MultimodalGP(robot=robot, **cfg).fit(log)
     t1 = time.perf_counter()
     (out_dir / f"{name}_model").mkdir(exist_ok=True)
-    result.model.save(out_dir / f"{name}_model")
-    comp = compensator_from_model(result.model, max_support=max_support, seed=args.seed)
+    result.save(out_dir / f"{name}_model")
+    comp = compensator_from_model(result, max_support=max_support, seed=args.seed)
     f = comp.save(out_dir / f"{name}_learned_compensator.npz")
     t2 = time.perf_counter()
     return mmgp.load_compensator(f), result, {"train_s": t1 - t0, "export_s": t2 - t1}
@@ -204,14 +168,13 @@ def simulate(model, ff, K, q_d, q0, hits, duration, *, friction=None):
 
     Work of the external force per step: ``(J^T F) . (q_{k+1} - q_k)`` (F constant over the step).
     """
-    mj = _mj()
-    d = mj.MjData(model)
+    d = mujoco.MjData(model)
     n = model.nv
     dt = model.opt.timestep
     steps = int(round(duration / dt))
     d.qpos[:] = q0
     d.qvel[:] = 0.0
-    mj.mj_forward(model, d)
+    mujoco.mj_forward(model, d)
     out = {k: np.zeros(steps) for k in ("t", "P", "E_in", "KE", "PE")}
     out["q"] = np.zeros((steps, n))
     jacp = np.zeros((3, n))
@@ -232,123 +195,166 @@ def simulate(model, ff, K, q_d, q0, hits, duration, *, friction=None):
             if push.frame == "body":
                 F = d.xmat[bid].reshape(3, 3) @ F
             d.xfrc_applied[bid, :3] += F
-            mj.mj_jac(model, d, jacp, None, d.xipos[bid], bid)
+            mujoco.mj_jac(model, d, jacp, None, d.xipos[bid], bid)
             tau_ext += jacp.T @ F
         out["KE"][k], out["PE"][k] = d.energy[1], d.energy[0]
-        mj.mj_step(model, d)
+        mujoco.mj_step(model, d)
         E += float(tau_ext @ (d.qpos - q))
         out["t"][k], out["q"][k], out["P"][k], out["E_in"][k] = t, q, float(tau_ext @ d.qvel), E
     return out
 
 
 def _hits(model, body, forces, times, frame):
-    bid = _mj().mj_name2id(model, _mj().mjtObj.mjOBJ_BODY, body)
+    bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     return [(Push(t0=float(t), duration=0.02, body=body, force=tuple(float(x) for x in f), frame=frame), bid)
             for t, f in zip(times, forces)]
 
 
-def _rms(a):
-    return float(np.sqrt(np.mean(np.asarray(a) ** 2)))
+def lever_plant(args, rng) -> dict:
+    """The replica lever: plant, impedance, mallet hits, nominal model, training recording."""
+    P = REPLICA
+    model = _enable_energy(mujoco.MjModel.from_xml_string(replica_mjcf()))
+    nofric = mujoco.MjModel.from_xml_string(replica_mjcf())
+    nofric.dof_frictionloss[:] = 0.0
+    L = P["lever_length"]
+    m_eff_true = P["load_mass"] * L + P["lever_mass"] * L / 2
+    m_eff_nom = 0.5 * L + P["lever_mass"] * L / 2
+    rec = actuator_replica(args.seed)
+    return {
+        "model": model, "nofric": nofric, "lo": np.array([-1.0]), "hi": np.array([1.6]), "names": ["lever_joint"],
+        "q_d": np.array([0.3]), "K": np.array([20.0]),
+        "rigid": lambda q: np.array([m_eff_nom * G * np.cos(q[0])]),
+        "friction": lambda m, d: m.dof_frictionloss.__setitem__(0, P["friction_c"] + P["friction_beta"] * abs(d.ctrl[0])),
+        "hits": _hits(model, "load", [(0, 0, 40.0), (0, 0, -30.0), (0, 0, -40.0), (0, 0, 30.0)],
+                      [1.0, 1.12, 4.0, 4.12], "body"),
+        "p_min": -m_eff_true * G,  # exact: lowest point of the lever's centre of mass (q = -pi/2)
+        "p_min_how": "exact", "n_support": min(args.support, 200), "rec": rec,
+        "rec_how": f"actuator_replica(seed={args.seed}): {len(rec.t)} samples at 20 Hz",
+    }
+
+
+def panda_plant(args, rng) -> dict:
+    """The Panda with a 1.5 kg payload and joint damping: as :func:`lever_plant`."""
+    urdf = panda_urdf_path()
+    payload = {"link": "panda_link8", "mass": 1.5, "com": [0.0, 0.0, 0.12]}
+    model = _enable_energy(load_model(urdf, PANDA_JOINTS, damping=0.3, payload=payload))
+    robot = RobotModel.from_name("panda", PANDA_JOINTS)
+    lim_lo, lim_hi = robot.pin_model.lowerPositionLimit.copy(), robot.pin_model.upperPositionLimit.copy()
+    lo, hi = np.maximum(HOME - 0.6, lim_lo), np.minimum(HOME + 0.6, lim_hi)
+    dirs = rng.standard_normal((4, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    hits = _hits(model, "panda_link7", 60.0 * np.array([dirs[0], -dirs[0], dirs[1], -dirs[1]]),
+                 [1.0, 1.08, 4.0, 4.08], "world")
+    # sampled minimum of MuJoCo's gravity potential over the joint limits (not rigorous)
+    d = mujoco.MjData(model)
+    pe = []
+    for qq in lim_lo + (lim_hi - lim_lo) * rng.random((20000, 7)):
+        d.qpos[:] = qq
+        mujoco.mj_forward(model, d)
+        pe.append(d.energy[0])
+    rec = panda_recording(urdf, payload, lo, hi, args.panda_samples, args.seed)
+    return {
+        "model": model, "nofric": load_model(urdf, PANDA_JOINTS, payload=payload),
+        "lo": lo, "hi": hi, "names": PANDA_JOINTS, "q_d": HOME.copy(),
+        "K": np.array([150.0, 150.0, 150.0, 150.0, 40.0, 40.0, 15.0]), "rigid": lambda q: robot.gravity(q),
+        "friction": None, "hits": hits, "p_min": float(np.min(pe)),
+        "p_min_how": "sampled over the joint limits (20k configurations)", "n_support": args.support, "rec": rec,
+        "rec_how": (f"mmgp.sim.simulate, payload 1.5 kg, damping 0.3, {len(rec.t)} samples at 100 Hz, "
+                    f"{len(rec.info['pushes'])} pushes"),
+    }
+
+
+def static_torque_errors(plant, torques, stand_in, learned, rng) -> tuple[dict, np.ndarray, np.ndarray]:
+    """RMS of |tau(q) - exact static torque| (N*m) per feedforward, on uniform points of the part of
+    the workspace box the learned model's data cover (outside it the learned feedforward fades to
+    zero by design), on 500 training positions and at q_d. Returns (errors, box low, box high)."""
+    lo, hi, rec = plant["lo"], plant["hi"], plant["rec"]
+    blo, bhi = np.maximum(lo, learned.bounds[0]), np.minimum(hi, learned.bounds[1])
+    Qbox = blo + (bhi - blo) * rng.random((500, len(lo)))
+    Qtraj = rec.info["q_true"][rng.choice(len(rec.t), min(500, len(rec.t)), replace=False)]
+    static = {}
+    for where, Q in (("box", Qbox), ("trajectory", Qtraj), ("q_d", plant["q_d"][None])):
+        ref = stand_in.nominal_torque(Q)
+        static[where] = {k: float(np.sqrt(np.mean(np.sum((np.asarray(f(Q)).reshape(Q.shape) - ref) ** 2, 1))))
+                         for k, f in torques.items()}
+    return static, blo, bhi
+
+
+def _storage(s, comp, K, q_d):
+    """Closed-loop storage H = KE + P_grav - V + K |q - q_d|^2 / 2 (J) along a run."""
+    return s["KE"] + s["PE"] - comp.potential(s["q"]) + 0.5 * np.sum(K * (s["q"] - q_d) ** 2, 1)
+
+
+def passivity_figures(plant, s, ff, K, comp, duration) -> dict:
+    """beta0 and the passivity checks of one run with an exported feedforward ``comp``."""
+    q_d, model = plant["q_d"], plant["model"]
+    q0 = q_d.copy()
+    beta0 = (s["KE"][0] + (s["PE"][0] - plant["p_min"]) + (comp.potential_upper_bound - comp.potential(q0))
+             + 0.5 * float(np.sum(K * (q0 - q_d) ** 2)))
+    H = _storage(s, comp, K, q_d)
+    s["H"], s["beta0"] = H, beta0
+    r = {"beta0_J": float(beta0), "passive_bound_holds": bool(np.min(s["E_in"]) >= -beta0),
+         "min_(beta0+E_in)_J": float(np.min(beta0 + s["E_in"])), "max_(H-H0)-E_in_J": float(np.max(H - H[0] - s["E_in"]))}
+    if r["max_(H-H0)-E_in_J"] > 1e-3:
+        # dH/dt <= P holds for the continuous system; a positive gap means the 1 ms semi-implicit
+        # Euler step did not conserve energy (fast motion, steep torque). Re-run with a 4x finer
+        # step (feedforward evaluated at every step) to tell.
+        dt = model.opt.timestep
+        model.opt.timestep = dt / 4
+        try:
+            s4 = simulate(model, ff, K, q_d, q0, plant["hits"], duration, friction=plant["friction"])
+        finally:
+            model.opt.timestep = dt
+        H4 = _storage(s4, comp, K, q_d)
+        r.update({"recheck_dt_s": dt / 4, "recheck_max_(H-H0)-E_in_J": float(np.max(H4 - H4[0] - s4["E_in"])),
+                  "recheck_E_in_min_J": float(np.min(s4["E_in"]))})
+    return r
+
+
+def tracking_figures(plant, s, ff, duration) -> dict:
+    """Tracking error (rad), time the pose holds, port energy and peak speed/torque of one run."""
+    err = s["q"] - plant["q_d"]
+    pre = s["t"] < min(h.t0 for h, _ in plant["hits"])
+    far = np.linalg.norm(err, axis=1) > 0.05
+    return {"rms_err_rad": float(np.sqrt(np.mean(np.sum(err ** 2, 1)))),
+            "static_err_rad": float(np.sqrt(np.sum(err[pre][-1] ** 2))),
+            "max_err_rad": float(np.max(np.linalg.norm(err, axis=1))),
+            # how long the impedance holds the pose: first time |q - q_d| exceeds 0.05 rad
+            "t_leave_0.05rad_s": float(s["t"][np.argmax(far)] if np.any(far) else duration),
+            "E_in_min_J": float(np.min(s["E_in"])), "E_in_end_J": float(s["E_in"][-1]),
+            "max_speed_rad_s": float(np.max(np.linalg.norm(np.diff(s["q"], axis=0), axis=1))
+                                     / plant["model"].opt.timestep),
+            "max_ff_torque_Nm": float(np.max(np.abs(np.array([ff(q) for q in s["q"][::20]]))))}
 
 
 def run_plant(name, args, out_dir):
-    mj = _mj()
     rng = np.random.default_rng(args.seed)
     t0 = time.perf_counter()
-    if name == "lever":
-        P = REPLICA
-        model = _enable_energy(mj.MjModel.from_xml_string(replica_mjcf()))
-        nofric = mj.MjModel.from_xml_string(replica_mjcf())
-        nofric.dof_frictionloss[:] = 0.0
-        lo, hi = np.array([-1.0]), np.array([1.6])
-        names = ["lever_joint"]
-        q_d = np.array([0.3])
-        K_stiff = np.array([20.0])
-        L = P["lever_length"]
-        m_eff_true = P["load_mass"] * L + P["lever_mass"] * L / 2
-        m_eff_nom = 0.5 * L + P["lever_mass"] * L / 2
-        rigid = lambda q: np.array([m_eff_nom * G * np.cos(q[0])])
-        friction = lambda m, d: m.dof_frictionloss.__setitem__(0, P["friction_c"] + P["friction_beta"] * abs(d.ctrl[0]))
-        hits = _hits(model, "load", [(0, 0, 40.0), (0, 0, -30.0), (0, 0, -40.0), (0, 0, 30.0)],
-                     [1.0, 1.12, 4.0, 4.12], "body")
-        p_min = -m_eff_true * G  # exact: lowest point of the lever's centre of mass (q = -pi/2)
-        p_min_how = "exact"
-        n_support = min(args.support, 200)
-        rec = actuator_replica(args.seed)
-        rec_how = f"actuator_replica(seed={args.seed}): {len(rec.t)} samples at 20 Hz"
-    else:
-        urdf = panda_urdf_path()
-        payload = {"link": "panda_link8", "mass": 1.5, "com": [0.0, 0.0, 0.12]}
-        model = _enable_energy(mj.MjModel.from_xml_string(
-            build_mjcf(urdf, PANDA_JOINTS, damping=0.3, payload=payload)))
-        nofric = mj.MjModel.from_xml_string(build_mjcf(urdf, PANDA_JOINTS, payload=payload))
-        from mmgp.physics.robot import RobotModel
-
-        robot = RobotModel.from_name("panda", PANDA_JOINTS)
-        lim_lo, lim_hi = robot.pin_model.lowerPositionLimit.copy(), robot.pin_model.upperPositionLimit.copy()
-        lo, hi = np.maximum(HOME - 0.6, lim_lo), np.minimum(HOME + 0.6, lim_hi)
-        names = PANDA_JOINTS
-        q_d = HOME.copy()
-        K_stiff = np.array([150.0, 150.0, 150.0, 150.0, 40.0, 40.0, 15.0])
-        rigid = lambda q: robot.gravity(q)
-        friction = None
-        dirs = rng.standard_normal((4, 3))
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        hits = _hits(model, "panda_link7", 60.0 * np.array([dirs[0], -dirs[0], dirs[1], -dirs[1]]),
-                     [1.0, 1.08, 4.0, 4.08], "world")
-        # sampled minimum of MuJoCo's gravity potential over the joint limits (not rigorous)
-        d = mj.MjData(model)
-        Qs = lim_lo + (lim_hi - lim_lo) * rng.random((20000, 7))
-        pe = []
-        for qq in Qs:
-            d.qpos[:] = qq
-            mj.mj_forward(model, d)
-            pe.append(d.energy[0])
-        p_min = float(np.min(pe))
-        p_min_how = "sampled over the joint limits (20k configurations)"
-        n_support = args.support
-        rec = panda_recording(urdf, payload, lo, hi, args.panda_samples, args.seed)
-        rec_how = (f"mmgp.sim.simulate, payload 1.5 kg, damping 0.3, {len(rec.t)} samples at 100 Hz, "
-                   f"{len(rec.info['pushes'])} pushes")
+    plant = (lever_plant if name == "lever" else panda_plant)(args, rng)
+    rec, n_support = plant["rec"], plant["n_support"]
     t_rec = time.perf_counter() - t0
-    print(f"[{name}] recording: {rec_how} ({t_rec:.1f} s)", flush=True)
+    print(f"[{name}] recording: {plant['rec_how']} ({t_rec:.1f} s)", flush=True)
 
     learned, result, t_learn = learned_compensator(name, rec, args, out_dir, n_support)
-    print(f"[{name}] trained {result.report['n_sweeps']} sweeps in {t_learn['train_s']:.1f} s, "
+    print(f"[{name}] trained {result.report_['n_sweeps']} sweeps in {t_learn['train_s']:.1f} s, "
           f"exported in {t_learn['export_s']:.1f} s", flush=True)
 
-    signavg_model = SignAveragedModel(result.model)
-    signavg = load_compensator(compensator_from_model(signavg_model, max_support=n_support, seed=args.seed)
-                               .save(out_dir / f"{name}_signavg_compensator.npz"))
-
     t0 = time.perf_counter()
-    stand_in = StaticTorqueModel(nofric, lo, hi, n_support, names, seed=args.seed)
+    stand_in = StaticTorqueModel(plant["nofric"], plant["lo"], plant["hi"], n_support, plant["names"], seed=args.seed)
     comp = compensator_from_model(stand_in, max_support=n_support, seed=args.seed)
     comp = load_compensator(comp.save(out_dir / f"{name}_standin_compensator.npz"))
     t_fit = time.perf_counter() - t0
     print(f"[{name}] stand-in exported in {t_fit:.1f} s", flush=True)
 
-    # Static torque against the plant's exact one, on the part of the workspace box the learned
-    # model's data cover (outside it the learned feedforward fades to zero by design).
-    blo, bhi = np.maximum(lo, learned.bounds[0]), np.minimum(hi, learned.bounds[1])
-    Qbox = blo + (bhi - blo) * rng.random((500, len(lo)))
-    Qtraj = rec.info["q_true"][rng.choice(len(rec.t), min(500, len(rec.t)), replace=False)]
-    rigid_t = lambda Q: np.array([rigid(q) for q in Q]).reshape(Q.shape)
-    torques = {"learned": learned.torque, "learned model (before export)": result.model.nominal_torque,
-               "learned, sign-averaged": signavg.torque, "stand-in": comp.torque, "rigid-body": rigid_t,
+    rigid = plant["rigid"]
+    torques = {"learned": learned.torque, "learned model (before export)": result.nominal_torque,
+               "stand-in": comp.torque, "rigid-body": lambda Q: np.array([rigid(q) for q in Q]).reshape(Q.shape),
                "none": np.zeros_like}
-    static = {}
-    for where, Q in (("box", Qbox), ("trajectory", Qtraj), ("q_d", q_d[None])):
-        ref = stand_in.nominal_torque(Q)
-        static[where] = {k: float(np.sqrt(np.mean(np.sum((np.asarray(f(Q)).reshape(Q.shape) - ref) ** 2, 1))))
-                         for k, f in torques.items()}
-
-    ffs = {"none": lambda q: np.zeros(len(q)), "rigid-body": rigid, "learned": learned.torque,
-           "learned, sign-averaged": signavg.torque, "stand-in": comp.torque}
-    comps = {"learned": learned, "learned, sign-averaged": signavg, "stand-in": comp}
-    q0 = q_d.copy()
-    res = {"plant": name, "recording": rec_how, "recording_s": t_rec,
-           "n_train_samples": int(result.report["n_samples"]), "n_sweeps": int(result.report["n_sweeps"]),
+    static, blo, bhi = static_torque_errors(plant, torques, stand_in, learned, rng)
+    ffs = {"none": lambda q: np.zeros(len(q)), "rigid-body": rigid, "learned": learned.torque, "stand-in": comp.torque}
+    comps = {"learned": learned, "stand-in": comp}
+    res = {"plant": name, "recording": plant["rec_how"], "recording_s": t_rec,
+           "n_train_samples": int(result.report_["n_samples"]), "n_sweeps": int(result.report_["n_sweeps"]),
            "train_s": t_learn["train_s"], "export_s": t_learn["export_s"],
            "learned_n_support": int(learned.support.shape[0]),
            "learned_workspace_bounds": learned.bounds.tolist(),
@@ -358,56 +364,20 @@ def run_plant(name, args, out_dir):
            "static_torque_err": static,
            "potential_upper_bound": {k: c.potential_upper_bound for k, c in comps.items()},
            "storage_sampled_min": {k: c.storage_sampled_min for k, c in comps.items()},
-           "p_grav_min": p_min, "p_grav_min_how": p_min_how, "runs": {}}
+           "p_grav_min": plant["p_min"], "p_grav_min_how": plant["p_min_how"], "runs": {}}
     sims = {}
-    first_hit = min(h.t0 for h, _ in hits)
-    for imp, K in (("stiffness", K_stiff), ("zero-impedance", np.zeros_like(K_stiff))):
+    for imp, K in (("stiffness", plant["K"]), ("zero-impedance", np.zeros_like(plant["K"]))):
         for ffname, ff in ffs.items():
             if imp == "zero-impedance" and ffname == "none":
                 continue  # without any feedforward a zero impedance just lets the arm fall
-            s = simulate(model, ff, K, q_d, q0, hits, args.duration, friction=friction)
+            s = simulate(plant["model"], ff, K, plant["q_d"], plant["q_d"].copy(), plant["hits"], args.duration,
+                         friction=plant["friction"])
             sims[(imp, ffname)] = s
-            err = s["q"] - q_d
-            pre = s["t"] < first_hit
-            r = {"rms_err_rad": float(np.sqrt(np.mean(np.sum(err ** 2, 1)))),
-                 "static_err_rad": float(np.sqrt(np.sum(err[pre][-1] ** 2))),
-                 "max_err_rad": float(np.max(np.linalg.norm(err, axis=1))),
-                 # how long the impedance holds the pose: first time |q - q_d| exceeds 0.05 rad
-                 "t_leave_0.05rad_s": float(s["t"][np.argmax(np.linalg.norm(err, axis=1) > 0.05)]
-                                            if np.any(np.linalg.norm(err, axis=1) > 0.05) else args.duration),
-                 "E_in_min_J": float(np.min(s["E_in"])), "E_in_end_J": float(s["E_in"][-1]),
-                 "max_speed_rad_s": float(np.max(np.linalg.norm(np.diff(s["q"], axis=0), axis=1))
-                                          / model.opt.timestep),
-                 "max_ff_torque_Nm": float(np.max(np.abs(np.array([ff(q) for q in s["q"][::20]]))))}
+            r = tracking_figures(plant, s, ff, args.duration)
             if ffname in comps:
-                c = comps[ffname]
-                V0 = c.potential(q0)
-                beta0 = (s["KE"][0] + (s["PE"][0] - p_min) + (c.potential_upper_bound - V0)
-                         + 0.5 * float(np.sum(K * (q0 - q_d) ** 2)))
-                r["beta0_J"] = float(beta0)
-                r["passive_bound_holds"] = bool(np.min(s["E_in"]) >= -beta0)
-                # storage along the run: H = KE + P_grav - V + spring, and E_in >= H - H0 (dissipation)
-                H = s["KE"] + s["PE"] - c.potential(s["q"]) + 0.5 * np.sum(K * (s["q"] - q_d) ** 2, 1)
-                r["min_(beta0+E_in)_J"] = float(np.min(beta0 + s["E_in"]))
-                r["max_(H-H0)-E_in_J"] = float(np.max(H - H[0] - s["E_in"]))
-                s["H"] = H
-                s["beta0"] = beta0
-                if r["max_(H-H0)-E_in_J"] > 1e-3:
-                    # dH/dt <= P holds for the continuous system; a positive gap means the 1 ms
-                    # semi-implicit Euler step did not conserve energy (fast motion, steep torque).
-                    # Re-run with a 4x finer step (feedforward evaluated at every step) to tell.
-                    dt = model.opt.timestep
-                    model.opt.timestep = dt / 4
-                    try:
-                        s4 = simulate(model, ff, K, q_d, q0, hits, args.duration, friction=friction)
-                    finally:
-                        model.opt.timestep = dt
-                    H4 = s4["KE"] + s4["PE"] - c.potential(s4["q"]) + 0.5 * np.sum(K * (s4["q"] - q_d) ** 2, 1)
-                    r["recheck_dt_s"] = dt / 4
-                    r["recheck_max_(H-H0)-E_in_J"] = float(np.max(H4 - H4[0] - s4["E_in"]))
-                    r["recheck_E_in_min_J"] = float(np.min(s4["E_in"]))
+                r.update(passivity_figures(plant, s, ff, K, comps[ffname], args.duration))
             res["runs"][f"{imp}/{ffname}"] = r
-    _plot(name, sims, q_d, out_dir)
+    _plot(name, sims, plant["q_d"], out_dir)
     return res
 
 
@@ -417,8 +387,7 @@ def _plot(name, sims, q_d, out_dir):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colors = {"none": "tab:gray", "rigid-body": "tab:orange", "learned": "tab:blue",
-              "learned, sign-averaged": "tab:purple", "stand-in": "tab:green"}
+    colors = {"none": "tab:gray", "rigid-body": "tab:orange", "learned": "tab:blue", "stand-in": "tab:green"}
     for imp in ("stiffness", "zero-impedance"):
         fig, ax = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
         for (i2, ff), s in sims.items():
@@ -453,7 +422,7 @@ def main():
     ap.add_argument("--plants", default="lever,panda")
     ap.add_argument("--support", type=int, default=400, help="support points of the Panda compensators")
     ap.add_argument("--panda-samples", type=int, default=2000, help="samples of the Panda training log (100 Hz)")
-    ap.add_argument("--max-sweeps", type=int, default=15, help="EM sweeps of mmgp.model.train")
+    ap.add_argument("--max-sweeps", type=int, default=15, help="EM sweeps of MultimodalGP")
     ap.add_argument("--duration", type=float, default=7.0, help="s per run")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
@@ -464,7 +433,7 @@ def main():
     for plant in args.plants.split(","):
         res = run_plant(plant.strip(), args, out_dir)
         allres.append(res)
-        print(f"\n== {plant}: training log {res['recording']}; mmgp.model.train {res['n_sweeps']} sweeps "
+        print(f"\n== {plant}: training log {res['recording']}; mmgp train {res['n_sweeps']} sweeps "
               f"{res['train_s']:.1f} s, export {res['export_s']:.1f} s ({res['learned_n_support']} support points)")
         print("static torque error against the plant's exact static torque, RMS of |error| (N*m):")
         st = res["static_torque_err"]

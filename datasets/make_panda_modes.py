@@ -19,7 +19,7 @@ import argparse
 import time
 from pathlib import Path
 
-from mmgp.sim.recording import panda_modes
+from mmgp.sim import panda_modes
 
 
 def main(argv=None) -> None:

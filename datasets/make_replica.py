@@ -29,7 +29,7 @@ import argparse
 import time
 from pathlib import Path
 
-from mmgp.sim.recording import actuator_replica
+from mmgp.sim import actuator_replica
 
 
 def main(argv=None) -> None:

@@ -127,12 +127,99 @@ def test_bad_config_key_is_refused(tmp_path):
     assert res.exit_code == 2 and "modez" in res.output
 
 
-def test_unavailable_device_is_a_clear_error(tmp_path):
+def test_unavailable_device_is_a_clear_error(tmp_path, monkeypatch):
+    # The same check on every machine: CUDA is made unavailable, as on a CPU-only one.
     import torch
 
-    if torch.cuda.is_available():
-        return  # nothing to refuse on a machine with CUDA; the CPU path is tested above
-    res = runner.invoke(app, ["train", str(LOG), "--out", str(tmp_path / "o"), "--device", "cuda", "--quiet"])
-    assert res.exit_code == 2 and "cuda" in res.output
-    res = runner.invoke(app, ["compare", str(LOG), "--out", str(tmp_path / "c"), "--device", "cuda"])
-    assert res.exit_code == 2 and "cuda" in res.output
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for args in (["train", str(LOG), "--out", str(tmp_path / "o"), "--device", "cuda", "--quiet"],
+                 ["compare", str(LOG), "--out", str(tmp_path / "c"), "--device", "cuda"]):
+        res = runner.invoke(app, args)
+        assert res.exit_code == 2 and "cuda" in res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error:") and "cuda" in lines[0], res.stderr
+        assert res.stdout == ""
+    assert not (tmp_path / "o").exists() and not (tmp_path / "c").exists()
+
+
+def test_python_and_command_line_give_identical_labels(trained):
+    """The estimator called from Python and `mmgp train` on the same log and settings."""
+    from mmgp import MultimodalGP
+
+    model = MultimodalGP().fit(LOG)
+    cli = pd.read_parquet(trained / "labels.parquet")
+    pd.testing.assert_frame_equal(model.labels_, cli, check_exact=True)
+    rep = json.loads((trained / "report.json").read_text())
+    assert rep["disturbance"]["n_disturbed"] == int(model.labels_["disturbed"].sum())
+
+
+def test_bad_yaml_is_one_line_naming_file_and_line(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("train:\n  n_modes: 2\n  seed: [0, 1\n")
+    res = runner.invoke(app, ["train", str(LOG), "--out", str(tmp_path / "o"), "--config", str(cfg), "--quiet"])
+    assert res.exit_code == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(cfg) in lines[0] and "line 3" in lines[0], res.stderr
+    cfg.write_text("train:\n  n_mode: 2\n")
+    res = runner.invoke(app, ["train", str(LOG), "--out", str(tmp_path / "o"), "--config", str(cfg), "--quiet"])
+    assert res.exit_code == 2 and "n_mode" in res.stderr and "n_modes" in res.stderr
+
+
+def planted_two_mode_log(path, T=300, rate=20.0, seed=0):
+    """1-DOF log whose torque jumps by 1 N*m in two stretches (mode 1), noise 0.05 N*m."""
+    from mmgp.data.logs import write_log
+
+    t = np.arange(T) / rate
+    q = 2.0 * np.sin(3.0 * t) + 0.3 * np.sin(7.1 * t)
+    mode = (((t >= 4) & (t < 8)) | ((t >= 11) & (t < 13.5))).astype(int)
+    tau = np.sin(1.5 * q) + 1.0 * mode + 0.05 * np.random.default_rng(seed).normal(size=T)
+    write_log(path, t, q[:, None], tau[:, None])
+    return mode
+
+
+def test_modes_auto_picks_the_planted_two_modes(tmp_path):
+    from sklearn.metrics import adjusted_rand_score
+
+    log = tmp_path / "two.parquet"
+    mode = planted_two_mode_log(log)
+    out = tmp_path / "auto"
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("train:\n  max_sweeps: 8\n  fit_iter: 20\n")
+    res = runner.invoke(app, ["train", str(log), "--out", str(out), "--modes", "auto", "--no-disturbance",
+                              "--config", str(cfg), "--quiet"])
+    assert res.exit_code == 0, res.output
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["mode_selection"]["chosen"] == 2 and set(rep["mode_selection"]["scores"]) == {"1", "2", "3"}
+    assert rep["n_modes"] == 2 and rep["config"]["max_sweeps"] == 8 and rep["config"]["n_modes"] == "auto"
+    lab = pd.read_parquet(out / "labels.parquet")
+    assert {"p_mode_0", "p_mode_1"} <= set(lab.columns) and "p_mode_2" not in lab.columns
+    assert adjusted_rand_score(mode, lab["mode"]) >= 0.9
+
+
+def test_demo_end_to_end(tmp_path, trained):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / ".mmgp-demo").write_text("an earlier demo run\n")     # the demo may replace its own output
+    (out / "stale.txt").write_text("from the earlier run")
+    res = runner.invoke(app, ["demo", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    for name in ("labels.parquet", "report.json", "evaluation.json", "model.json", "model.npz", "labels.png",
+                 "likelihood_trace.png"):
+        assert (out / name).is_file(), name
+    assert not (out / "stale.txt").exists()
+    # The demo trains with the defaults on the shipped log: the labels of `mmgp train`.
+    pred = pd.read_parquet(out / "labels.parquet")
+    pd.testing.assert_frame_equal(pred, pd.read_parquet(trained / "labels.parquet"), check_exact=True)
+    # Its figures, against counts made here from the shipped truth.
+    fig = json.loads((out / "evaluation.json").read_text())
+    d = read_labels(LABELS, t=pred["t"].to_numpy())["disturbed"].to_numpy()
+    p = pred["disturbed"].to_numpy()
+    assert fig["unperturbed_correct"] == pytest.approx(((p == 0) & (d == 0)).sum() / (d == 0).sum())
+    assert fig["perturbed_missed"] == pytest.approx(((p == 0) & (d == 1)).sum() / (d == 1).sum())
+    assert f"{fig['unperturbed_correct']:.3f}" in res.stdout and "0.817" in res.stdout
+    # Another folder is not replaced without --force.
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("precious")
+    res = runner.invoke(app, ["demo", "--out", str(other)])
+    assert res.exit_code == 2 and (other / "keep.txt").read_text() == "precious"

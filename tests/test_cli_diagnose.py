@@ -113,3 +113,27 @@ def test_log_without_robot_is_refused_clearly(case, tmp_path):
     assert res.exit_code == 2
     assert "--robot" in res.output and "--urdf" in res.output and "bare.parquet" in res.output
     assert not out.exists()
+
+
+def test_settings_come_from_the_config_section(case, tmp_path):
+    """A YAML 'diagnose:' section reaches the Diagnoser: the scan alone separates the pushes
+    (no learner), only the listed effects are candidates, no GP stage and no plots; the
+    simulator's friction is still found. Unknown keys are refused, naming the file."""
+    cfg = tmp_path / "settings.yaml"
+    cfg.write_text("train:\n  modes: 1\ndiagnose:\n  gp: false\n  plots: false\n  separate: scan\n"
+                   "  effects: [coulomb_friction, viscous_friction]\n")
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(out), "--config", str(cfg)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "findings.json").read_text())
+    eff = [f for f in doc["findings"] if f["effect"] not in WHOLE_LOG]
+    assert [(f["effect"], f["joint"]) for f in eff] == [("coulomb_friction", "lever_joint")]
+    assert eff[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
+    assert "with_physics_and_gp" not in doc["fit"] and not list(out.glob("*.png"))
+    assert doc["info"]["n_candidates"] == 2
+    sep = doc["info"]["separation"]
+    assert sep["method"] == "robust chi-square scan" and "em_seconds" not in sep
+    cfg.write_text("diagnose:\n  gp: false\n  no_such_setting: 3\n")
+    res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(tmp_path / "x"), "--config", str(cfg)])
+    assert res.exit_code == 2
+    assert "no_such_setting" in res.output and "settings.yaml" in res.output

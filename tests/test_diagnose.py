@@ -6,7 +6,11 @@ import pytest
 
 from mmgp.sim import concealed as C
 from mmgp.physics import effects as fx
-from mmgp.diagnosis.pipeline import FoldGrams, ForwardCVSelector, _hmm_filter, diagnose, valid_mask
+from mmgp.physics.context import Context
+from mmgp.diagnosis import Diagnoser
+from mmgp.diagnosis.modes import switching_posterior
+from mmgp.diagnosis.selection import FoldGrams, ForwardCVSelector, signed_rank_p
+from mmgp.diagnosis.separation import gate_spans, runs, valid_mask
 from mmgp.data.folds import time_block_folds
 
 
@@ -17,7 +21,7 @@ def _synthetic_ctx(T=3000, n=3, seed=0):
     dq = np.gradient(q, t, axis=0)
     ddq = np.gradient(dq, t, axis=0)
     tau_rbd = 5 * np.cos(q)
-    ctx = fx.Context(q, dq, ddq, tau_rbd, np.zeros((T, n, n)), np.zeros((T, n, 10 * n)), np.full(n, 0.02),
+    ctx = Context(q, dq, ddq, tau_rbd, np.zeros((T, n, n)), np.zeros((T, n, 10 * n)), np.full(n, 0.02),
                      [f"j{j}" for j in range(n)], [f"l{j}" for j in range(n)])
     return ctx, rng
 
@@ -26,7 +30,7 @@ def _select(ctx, r):
     lib = fx.effect_library(ctx, effects=[e for e in fx.JOINT_EFFECTS if e != "encoder_offset"])
     keys, A = fx.build_atoms(lib, ctx)
     grams = FoldGrams(A, r, np.ones(ctx.T, bool), time_block_folds(ctx.T, 20))
-    return ForwardCVSelector().fit(lib, keys, grams, np.ones(ctx.n)).selected_
+    return ForwardCVSelector().fit(lib, keys, grams, np.ones(ctx.n), ctx).selected_
 
 
 def test_selection_recovers_planted_effect():
@@ -76,7 +80,7 @@ def test_weighted_fold_grams_match_direct_least_squares():
         assert g.nte[k].tolist() == [(W[te, j] > 0).sum() for j in range(n)]
 
 
-def test_paired_p_matches_sign_flip_enumeration():
+def test_signed_rank_p_matches_sign_flip_enumeration():
     """The one-sided signed-rank p-value equals the exact permutation p-value (all 2^K sign flips)."""
     import itertools
 
@@ -85,7 +89,7 @@ def test_paired_p_matches_sign_flip_enumeration():
     obs = ranks[d > 0].sum()
     null = [sum(r for r, s in zip(ranks, signs) if s) for signs in itertools.product([0, 1], repeat=len(d))]
     want = np.mean(np.array(null) >= obs)
-    assert ForwardCVSelector.paired_p(d) == pytest.approx(want, rel=1e-9)
+    assert signed_rank_p(d) == pytest.approx(want, rel=1e-9)
 
 
 def test_valid_mask_drops_rest_and_filter_memory():
@@ -101,13 +105,14 @@ def test_valid_mask_drops_rest_and_filter_memory():
 
 
 def test_hmm_posterior_matches_enumeration():
-    """Two-state forward-backward marginals equal brute-force sums over all 2^T state paths."""
+    """The mode-switch test's two-state marginals (mmgp.models.hmm's forward-backward) equal
+    brute-force sums over all 2^T state paths."""
     import itertools
 
     rng = np.random.default_rng(5)
     T, stay = 7, 0.8
     ll = rng.normal(0, 1.5, (T, 2))
-    post, pred = _hmm_filter(ll, stay)
+    post = switching_posterior(ll, stay)
     P = np.array([[stay, 1 - stay], [1 - stay, stay]])
     want = np.zeros((T, 2))
     for path in itertools.product([0, 1], repeat=T):
@@ -130,13 +135,13 @@ def cases():
     return out
 
 
-def _run(case, **cfg):
+def _run(case, **settings):
     spec, rec, truth = case
-    return diagnose(C.recording_to_log(rec), C.nominal_robot(spec), config={"gp": False, "plots": False, **cfg}), truth
+    return Diagnoser(gp=False, plots=False, **settings).fit(C.recording_to_log(rec), C.nominal_robot(spec)), truth
 
 
 def _effects(res):
-    return [f for f in res.findings if f["effect"] not in ("external_disturbance", "mode_switch")]
+    return [f for f in res.findings_ if f["effect"] not in ("external_disturbance", "mode_switch")]
 
 
 def test_finds_concealed_coulomb(cases):
@@ -144,7 +149,7 @@ def test_finds_concealed_coulomb(cases):
     f = _effects(res)
     assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "panda_joint4")]
     assert f[0]["params"]["tau_c"] == pytest.approx(1.5, rel=0.1)
-    assert res.fit["with_physics"]["nmse"]["panda_joint4"] < 0.5 * res.fit["nominal"]["nmse"]["panda_joint4"]
+    assert res.fit_stages_["with_physics"]["nmse"]["panda_joint4"] < 0.5 * res.fit_stages_["nominal"]["nmse"]["panda_joint4"]
 
 
 def test_finds_load_dependent_friction_on_actuator(cases):
@@ -159,7 +164,7 @@ def test_finds_load_dependent_friction_on_actuator(cases):
 
 def test_finds_payload_mass(cases):
     res, truth = _run(cases["panda_payload"])
-    pl = [f for f in res.findings if f["effect"] == "payload"]
+    pl = [f for f in res.findings_ if f["effect"] == "payload"]
     assert len(pl) == 1 and pl[0]["link"] == "panda_link7"
     assert pl[0]["params"]["mass"] == pytest.approx(1.2, rel=0.1)
     assert pl[0]["params"]["com"][2] == pytest.approx(0.15, abs=0.03)
@@ -167,8 +172,8 @@ def test_finds_payload_mass(cases):
 
 def test_control_case_has_no_finding(cases, tmp_path):
     res, truth = _run(cases["panda_control"])
-    assert res.findings == []
-    res.write(tmp_path)
+    assert res.findings_ == []
+    res.report(tmp_path)
     doc = json.loads((tmp_path / "findings.json").read_text())
     assert doc["findings"] == [] and set(doc["fit"]) >= {"nominal", "with_physics"}
     assert "Nothing is missing" in (tmp_path / "report.md").read_text()
@@ -182,7 +187,7 @@ def test_pushes_are_separated_before_fitting_friction(cases):
     f = _effects(res)
     assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "lever_joint")]
     assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
-    d = [x for x in res.findings if x["effect"] == "external_disturbance"]
+    d = [x for x in res.findings_ if x["effect"] == "external_disturbance"]
     assert len(d) == 1
     lab = rec.labels["disturbed"] == 1
     flagged = np.zeros(len(rec.t), bool)
@@ -191,45 +196,52 @@ def test_pushes_are_separated_before_fitting_friction(cases):
     assert (flagged & lab).sum() > 0.7 * lab.sum()  # most pushed samples found
     assert (flagged & ~lab).sum() < 0.1 * flagged.sum()  # few false flags
     # the default: scanned spans are kept only where the multimodal learner confirms them
-    assert "MultimodalSEM" in res.info["separation"]["method"] and "em_seconds" in res.info["separation"]
+    assert "MultimodalSEM" in res.info_["separation"]["method"] and "em_seconds" in res.info_["separation"]
 
 
 def test_payload_modes_are_found_with_their_masses(cases):
     """Payload of 0 kg / 1.5 kg switched on link 7 during the log: a mode_switch with both masses."""
     spec, rec, truth = cases["panda_modes"]
     res, _ = _run(cases["panda_modes"])
-    m = [x for x in res.findings if x["effect"] == "mode_switch"]
+    m = [x for x in res.findings_ if x["effect"] == "mode_switch"]
     assert len(m) == 1
     masses = sorted(pm["mass"] for pm in m[0]["params"]["per_mode"])
     assert masses[0] == pytest.approx(0.0, abs=0.1) and masses[1] == pytest.approx(1.5, rel=0.1)
-    assert not [x for x in res.findings if x["effect"] in ("payload", "external_disturbance")]
+    assert not [x for x in res.findings_ if x["effect"] in ("payload", "external_disturbance")]
     # labels: the two-mode segmentation matches the simulator's modes on most samples
-    lab = np.interp(res.labels["t"], rec.t, rec.labels["mode"]).round()
-    assert (res.labels["mode"] == lab).mean() > 0.9
+    lab = np.interp(res.labels_["t"], rec.t, rec.labels["mode"]).round()
+    assert (res.labels_["mode"] == lab).mean() > 0.9
 
 
-def test_gate_and_union_of_scan_and_learner_flags():
-    """_combine against its definition, span by span: a scanned span survives the gate iff its
-    peak is strong or the learner flags at least one of its samples; the union flags a sample iff
-    either does."""
-    from mmgp.diagnosis.pipeline import _combine, _runs
-
+def test_gate_of_scan_by_learner_flags():
+    """gate_spans against its definition, span by span: a scanned span survives the gate iff its
+    peak is strong or the learner flags at least one of its samples."""
     rng = np.random.default_rng(5)
     for _ in range(20):
         scan = rng.uniform(size=200) < 0.1
         scan = np.convolve(scan, np.ones(7), "same") > 0  # spans of several samples
         p = rng.uniform(size=200) ** 6
-        peaks = rng.uniform(1, 10, size=len(_runs(scan)))
-        gated, info = _combine(scan, p, "gate", peaks=peaks, strong=5.0)
+        peaks = rng.uniform(1, 10, size=len(runs(scan)))
+        gated, info = gate_spans(scan, p, peaks=peaks, strong=5.0)
         want = np.zeros(200, bool)
         kept = 0
-        for (a, b), pk in zip(_runs(scan), peaks):
+        for (a, b), pk in zip(runs(scan), peaks):
             if pk >= 5.0 or any(p[i] > 0.5 for i in range(a, b)):
                 want[a:b] = True
                 kept += 1
-        assert (gated == want).all() and info["spans_dropped_by_em"] == len(_runs(scan)) - kept
-        union, _ = _combine(scan, p, "union")
-        assert (union == np.array([s or x > 0.5 for s, x in zip(scan, p)])).all()
+        assert (gated == want).all() and info["spans_dropped_by_em"] == len(runs(scan)) - kept
+
+
+def _check_pushes_and_friction(res, rec, recall: float, false_share: float):
+    """The lever's Coulomb friction (0.3 N*m) found alone; flagged samples against the simulator's
+    push labels: at least ``recall`` of the pushed ones, at most ``false_share`` false."""
+    f = _effects(res)
+    assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "lever_joint")]
+    assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
+    lab = np.interp(res.labels_["t"], rec.t, rec.labels["disturbed"]).round()
+    got = res.labels_["disturbed"] == 1
+    assert (got & (lab == 1)).sum() > recall * (lab == 1).sum()
+    assert (got & (lab == 0)).sum() < false_share * got.sum()
 
 
 def test_learner_alone_separates_pushes(cases):
@@ -237,11 +249,42 @@ def test_learner_alone_separates_pushes(cases):
     simulator's pushes, and friction fitted on the rest is right."""
     spec, rec, truth = cases["actuator_pushes_coulomb"]
     res, _ = _run(cases["actuator_pushes_coulomb"], separate="em")
-    f = _effects(res)
-    assert [(x["effect"], x["joint"]) for x in f] == [("coulomb_friction", "lever_joint")]
-    assert f[0]["params"]["tau_c"] == pytest.approx(0.3, rel=0.1)
-    lab = np.interp(res.labels["t"], rec.t, rec.labels["disturbed"]).round()
-    got = res.labels["disturbed"] == 1
-    assert (got & (lab == 1)).sum() > 0.9 * (lab == 1).sum()
-    assert (got & (lab == 0)).sum() < 0.2 * got.sum()
-    assert res.info["separation"]["em_points"] <= 500
+    _check_pushes_and_friction(res, rec, recall=0.9, false_share=0.2)
+    assert res.info_["separation"]["em_points"] <= 500
+
+
+def test_scan_alone_and_no_separation(cases):
+    """separate="scan": the robust scan's spans alone match the simulator's pushes (the learner
+    never runs) and friction fitted on the rest is right; separate="none": nothing is flagged or
+    left out."""
+    spec, rec, truth = cases["actuator_pushes_coulomb"]
+    res, _ = _run(cases["actuator_pushes_coulomb"], separate="scan")
+    _check_pushes_and_friction(res, rec, recall=0.7, false_share=0.1)
+    assert res.info_["separation"]["method"] == "robust chi-square scan"
+    assert "em_seconds" not in res.info_["separation"]
+    res, _ = _run(cases["actuator_pushes_coulomb"], separate="none")
+    assert not [x for x in res.findings_ if x["effect"] == "external_disturbance"]
+    assert res.fit_stages_["samples_excluded_as_disturbed"] == 0 and res.labels_ is None
+
+
+def test_diagnoser_is_a_scikit_learn_estimator(cases, tmp_path):
+    """Settings stored unchanged, clone works, parts are swappable, unfitted use is refused."""
+    from sklearn.base import clone
+    from sklearn.exceptions import NotFittedError
+
+    from mmgp.data.differentiation import SavitzkyGolay
+    from mmgp.errors import InputError
+
+    d = Diagnoser(effects=["coulomb_friction"], selector=ForwardCVSelector(alpha=0.01), gp=False, plots=False)
+    c = clone(d)
+    assert c.get_params()["effects"] == ["coulomb_friction"] and c.get_params()["selector__alpha"] == 0.01
+    with pytest.raises(NotFittedError):
+        c.report(tmp_path)
+    with pytest.raises(InputError, match="separate"):
+        clone(d).set_params(separate="magic").fit(None, None)
+    spec, rec, truth = cases["panda_coulomb_j4"]
+    # a logged-velocity differentiator part: ddq from dq with a fixed 0.05 s window
+    fitted = c.set_params(differentiator=SavitzkyGolay(window_s=0.05)).fit(C.recording_to_log(rec),
+                                                                            C.nominal_robot(spec))
+    assert fitted is c and fitted.info_["n_candidates"] == 7
+    assert [(x["effect"], x["joint"]) for x in fitted.findings_] == [("coulomb_friction", "panda_joint4")]

@@ -4,7 +4,8 @@ import pinocchio as pin
 import pytest
 
 from mmgp.physics import effects as fx
-from mmgp.sim.recording import panda_urdf_path, reduced_pinocchio_model, PANDA_JOINTS
+from mmgp.physics.context import build_context, smooth_sign_scale
+from mmgp.sim import PANDA_JOINTS, panda_urdf_path, reduced_pinocchio_model
 
 
 @pytest.fixture(scope="module")
@@ -15,7 +16,7 @@ def setup():
     q = rng.uniform(-1, 1, (T, 7))
     dq = rng.normal(0, 0.5, (T, 7))
     ddq = rng.normal(0, 1.0, (T, 7))
-    ctx = fx.build_context(model, q, dq, ddq, v_s=np.full(7, 0.05))
+    ctx = build_context(model, q, dq, ddq, v_s=np.full(7, 0.05))
     return model, q, dq, ddq, ctx
 
 
@@ -93,5 +94,5 @@ def test_smooth_sign_scale_tracks_noise():
     t = np.linspace(0, 10, 5000)
     clean = np.sin(t)[:, None]
     for sigma in (0.001, 0.01):
-        vs = fx.smooth_sign_scale(clean + sigma * rng.standard_normal(clean.shape), k=3.0, floor_frac=0.0)
+        vs = smooth_sign_scale(clean + sigma * rng.standard_normal(clean.shape), k=3.0, floor_frac=0.0)
         assert vs[0] == pytest.approx(3 * sigma, rel=0.15)

@@ -16,10 +16,13 @@ from scipy.stats import multivariate_normal, norm
 from sklearn.metrics import adjusted_rand_score
 
 import mmgp.gp.exact as gp_module
+from mmgp.models.mstep import ModeFitter
 from mmgp.models.sem import MultimodalSEM
 from mmgp.data.folds import _blocks
 from mmgp.models.robust import basis_rank, fit_basis_coefficients
-from mmgp.gp.windowed import block_loo_log_predictive, windowed_predictive
+from mmgp.gp.kernels import rbf_kernel
+from mmgp.gp.objectives import block_loo_log_predictive
+from mmgp.gp.windowed import windowed_predictive
 from mmgp.models.hmm import ffbs_sample, forward_backward, gibbs_conditionals, gibbs_sweep, sequence_log_prior, transition_matrix
 from mmgp.gp.linalg import DTYPE
 from mmgp.gp.exact import ExactGP
@@ -194,7 +197,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
     """p(w, Y) = prod_k p(Y_k | GP) x Markov(w). Its exact conditional p(w_t | w_-t, Y), from
     enumerating all 2^6 labellings, must equal the normalised product of y_t's predictive under
     each mode's GP given the *other* samples of that mode (LOO for members) and the Markov
-    neighbours: the em's emission, assembled by MultimodalSEM._mode_likelihoods and
+    neighbours: the em's emission, assembled by ModeFitter.predictive (the M-step's mode model) and
     gibbs_conditionals, and the same from ExactGP predict / loo_predictive directly.
 
     ExactGP re-standardises X and Y on every fit; with that, a fixed hyperparameter vector means a
@@ -228,8 +231,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
     table = {tuple(w): log_evidence(np.flatnonzero(w == 0)) + log_evidence(np.flatnonzero(w == 1))
              + log_prior_ref(w, A, init, {0}) for w in seqs}
 
-    sem = MultimodalSEM(2, disturbance=False, max_support=100)
-    sem._t_axis = None  # plain LOO emission (no time window), as fit() without t
+    fitter = ModeFitter(x[:, None], y[:, None], MultimodalSEM(2, disturbance=False, max_support=100))  # no time axis: LOO
     n_checked = 0
     for w in seqs:
         if min((w == 0).sum(), (w == 1).sum()) < 2:
@@ -239,7 +241,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
         # (a) the em's own emission code
         loglik = np.empty((N, 2))
         for k in range(2):
-            mean, var, *_ = sem._mode_likelihoods(x[:, None], y[:, None], np.flatnonzero(w == k), hyper, False, rng)
+            mean, var, *_ = fitter.predictive(np.flatnonzero(w == k), hyper, False, rng)
             loglik[:, k] = norm.logpdf(y, mean[:, 0], np.sqrt(var[:, 0]))
         p_em = gibbs_conditionals(loglik, A, init, w, np.arange(N))
         np.testing.assert_allclose(p_em, exact, atol=1e-8)
@@ -340,7 +342,8 @@ def test_block_loo_log_predictive_equals_brute_force_refits(length):
     floor = 1e-6
     idx, valid = _blocks(ts, length)
     t = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
-    got = block_loo_log_predictive(t(Xs), t(Ys.T.copy()), t(log_ls), t(log_sf), t(log_sn), floor, idx, valid)
+    K = rbf_kernel(t(Xs), t(Xs), t(np.exp(log_ls)), t(np.exp(log_sf))) + t(np.exp(log_sn) + floor)[:, None, None] * torch.eye(len(ts), dtype=DTYPE)
+    got = block_loo_log_predictive(K, t(Ys.T.copy()), idx, valid)
     want = np.zeros(2)
     for b in range(len(idx)):
         test = idx[b][valid[b]]
@@ -461,3 +464,18 @@ def test_basis_mean_extrapolates_a_planted_mode_offset():
     np.testing.assert_allclose(diff.ravel(), 1.5 * np.cos(xq), atol=0.1)
     with pytest.raises(ValueError, match="basis"):
         m.predict(xq[:, None], mode=0)
+
+
+def test_a_mode_no_sample_ends_in_still_gets_a_defined_gp():
+    """K = 3 on a log with two planted modes: the empty mode's GP conditions on the samples most
+    likely in it instead of on nothing (which gave NaN means)."""
+    t, x, f = planted_signal()
+    mode = (((t >= 4) & (t < 8)) | ((t >= 11) & (t < 13.5))).astype(int)
+    y = f + 1.0 * mode + 0.05 * np.random.default_rng(0).normal(size=len(t))
+    m = MultimodalSEM(n_modes=3, disturbance=False, max_sweeps=10, seed=0).fit(x[:, None], y[:, None], t=t)
+    sizes = np.bincount(m.labels_, minlength=3)
+    assert (sizes == 0).any(), sizes            # the case under test happens
+    for k in range(3):
+        mean, std = m.predict(x[:20, None], mode=k)
+        assert np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()
+    assert adjusted_rand_score(mode, m.labels_) >= 0.9

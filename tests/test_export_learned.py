@@ -2,7 +2,8 @@
 
 References: the trained model's own prediction (torch GP, a different code path from the numpy
 evaluator of the file), finite differences of the exported storage, zero (storage lower bound),
-and, for a MuJoCo two-link arm, the closed-form gravity torque of the arm.
+the replica lever's gravity and dry-friction band, and, for a MuJoCo two-link arm, the
+closed-form gravity torque of the arm.
 """
 from __future__ import annotations
 
@@ -12,17 +13,16 @@ import numpy as np
 import pytest
 
 import mmgp
-from mmgp.compensator.field import check_passivity, compensator_from_model
-from mmgp.config import load_config
-from mmgp.models.trained import train
+from mmgp.compensator import check_passivity, compensator_from_model
+from mmgp import MultimodalGP
 
 REPLICA_LOG = Path(__file__).resolve().parents[1] / "mmgp" / "resources" / "replica" / "replica_log.parquet"
 
 
 @pytest.fixture(scope="module")
 def replica(tmp_path_factory):
-    res = train([REPLICA_LOG], load_config(max_sweeps=15, seed=0))
-    comp = compensator_from_model(res.model, max_support=200, seed=0)
+    res = MultimodalGP(max_sweeps=15, seed=0).fit(REPLICA_LOG)
+    comp = compensator_from_model(res, max_support=200, seed=0)
     path = comp.save(tmp_path_factory.mktemp("exp") / "replica.npz")
     return res, mmgp.load_compensator(path)
 
@@ -30,18 +30,30 @@ def replica(tmp_path_factory):
 def test_replica_export_matches_model(replica):
     res, comp = replica
     assert comp.kind == "erf-1dof"
-    lo, hi = res.model.support_q_.min(), res.model.support_q_.max()
+    lo, hi = res.support_q_.min(), res.support_q_.max()
     q = np.linspace(lo, hi, 400)[:, None]
-    ref = res.model.nominal_torque(q)
+    ref = res.nominal_torque(q)
     # The export has to be invisible next to what the model itself can resolve: its learned noise
     # std (about 0.017 N*m here, the torque sensor's 0.02). 1% of it is far below anything a
     # controller could notice, and far above the interpolant's error (a few 1e-6 N*m).
-    noise = res.report["hyperparameters"][0]["per_joint"][0]["noise_std"]
+    noise = res.report_["hyperparameters"][0]["per_joint"][0]["noise_std"]
     assert 0.005 < noise < 0.05
     err = np.max(np.abs(comp.torque(q) - ref))
     assert err < 0.01 * noise, err
-    # a torque that is not the model's (a 5% scale error) must fail the same tolerance
-    assert np.max(np.abs(1.05 * ref - ref)) > 0.01 * noise
+
+
+def test_replica_export_holds_the_lever_still(replica):
+    """Physics reference: the replica lever's gravity torque is (m_load L + m_lever L / 2) g cos q
+    and its dry friction is c + beta |motor torque| (mmgp.sim.REPLICA). A torque tau
+    holds the lever at rest iff |tau - gravity| <= c + beta |tau|, so the learned torque at rest
+    must lie in that band (without gravity it would leave it by up to 5x)."""
+    from mmgp.sim import REPLICA as P
+
+    res, comp = replica
+    q = np.linspace(res.support_q_.min(), res.support_q_.max(), 400)
+    gravity = (P["load_mass"] * P["lever_length"] + P["lever_mass"] * P["lever_length"] / 2) * 9.81 * np.cos(q)
+    tau = comp.torque(q[:, None])[:, 0]
+    assert np.all(np.abs(tau - gravity) <= P["friction_c"] + P["friction_beta"] * np.abs(tau))
 
 
 def test_replica_storage_gradient_is_torque(replica):
@@ -88,7 +100,7 @@ def _arm_gravity(q):
 def test_two_joint_learned_export_is_passive(tmp_path):
     import mujoco
 
-    from mmgp.sim.recording import simulate
+    from mmgp.sim import simulate
 
     model = mujoco.MjModel.from_xml_string(_arm_xml())
     w, a, c = 2 * np.pi / np.array([13.0, 7.0]), np.array([0.9, 1.0]), np.array([0.3, -0.4])
@@ -100,8 +112,8 @@ def test_two_joint_learned_export_is_passive(tmp_path):
                    q_resolution=2 * np.pi / 2 ** 14, log_dq=False, joint_names=["j1", "j2"], seed=1, settle=1.0)
     log = tmp_path / "arm.parquet"
     rec.write(log)
-    res = train([log], load_config(max_sweeps=10, seed=0))
-    comp = compensator_from_model(res.model, max_support=150, seed=0)
+    res = MultimodalGP(max_sweeps=10, seed=0).fit(log)
+    comp = compensator_from_model(res, max_support=150, seed=0)
     comp = mmgp.load_compensator(comp.save(tmp_path / "arm.json"))
     assert comp.kind == "curl-free-rbf" and comp.n_joints == 2
 

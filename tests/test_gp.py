@@ -1,5 +1,6 @@
-"""Exact GP (mmgp.gp) and scalable GP (mmgp.gp_sparse) against independent references:
-brute-force leave-one-out refits, scikit-learn's GaussianProcessRegressor, torch autograd."""
+"""Exact GP, scalable GP and the hyperparameter optimiser (mmgp.gp) against independent references:
+brute-force leave-one-out refits, scikit-learn's GaussianProcessRegressor, torch autograd,
+closed-form optima, numpy textbook formulas."""
 from __future__ import annotations
 
 import math
@@ -12,8 +13,9 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
 from mmgp.gp.linalg import DTYPE, GPNumericalError, robust_cholesky
 from mmgp.gp.exact import ExactGP
-from mmgp.gp.hyper import Hyper, default_hyper, optimise_hyper
-from mmgp.gp.objectives import _value_and_grad, log_marginal_likelihood, loo_log_predictive
+from mmgp.gp.hyper import (Hyper, LogNormalPrior, RBFParams, chained_value_and_grad, default_hyper, maximise,
+                           optimise_hyper, rbf_value_and_grad)
+from mmgp.gp.objectives import LOO, MARGINAL, log_marginal_likelihood, loo_log_predictive
 from mmgp.gp.kernels import rbf_kernel
 
 
@@ -88,25 +90,99 @@ def test_predictions_match_sklearn_at_fixed_hyperparameters(include_noise):
         assert float(log_marginal_likelihood(K, ys)[0]) == pytest.approx(lml_sk, rel=1e-10)
 
 
-@pytest.mark.parametrize("objective", ["loo", "marginal"])
+@pytest.mark.parametrize("objective", [LOO, MARGINAL], ids=["loo", "marginal"])
 @pytest.mark.parametrize("ard", [True, False])
 def test_analytic_gradient_matches_autograd(objective, ard):
     rng = np.random.default_rng(2)
     N, d, m = 35, 3, 2
     X = torch.as_tensor(rng.normal(size=(N, d)), dtype=DTYPE)
     y = torch.as_tensor(rng.normal(size=(m, N)), dtype=DTYPE)
-    log_ls = torch.as_tensor(rng.normal(scale=0.3, size=(m, d if ard else 1)), dtype=DTYPE).requires_grad_()
-    log_sf = torch.as_tensor(rng.normal(scale=0.3, size=m), dtype=DTYPE).requires_grad_()
-    log_sn = torch.as_tensor(rng.normal(size=m) - 2, dtype=DTYPE).requires_grad_()
+    params = RBFParams(m, d, ard=ard, noise_floor=1e-6)
+    theta = torch.as_tensor(np.concatenate([rng.normal(scale=0.3, size=m * (d if ard else 1)),
+                                            rng.normal(scale=0.3, size=m), rng.normal(size=m) - 2]), dtype=DTYPE)
+    # reference: plain autograd through the whole objective (Cholesky included)
+    th = theta.clone().requires_grad_()
+    log_ls, log_sf, log_sn = params.unpack(th)
     K = rbf_kernel(X, X, torch.exp(log_ls), torch.exp(log_sf)) + (torch.exp(log_sn) + 1e-6)[:, None, None] * torch.eye(N, dtype=DTYPE)
-    F_ref = (loo_log_predictive if objective == "loo" else log_marginal_likelihood)(K, y)
-    F_ref.sum().backward()
-    with torch.no_grad():
-        F, g_ls, g_sf, g_sn = _value_and_grad(X, y, log_ls, log_sf, log_sn, 1e-6, objective)
-    torch.testing.assert_close(F, F_ref.detach(), rtol=1e-12, atol=1e-10)
-    torch.testing.assert_close(g_ls, log_ls.grad, rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(g_sf, log_sf.grad, rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(g_sn, log_sn.grad, rtol=1e-9, atol=1e-9)
+    F_ref = objective.value(K, y).sum()
+    F_ref.backward()
+    F, g = rbf_value_and_grad(params, objective, X, y, theta)            # hand-written chain rule
+    F_c, g_c = chained_value_and_grad(objective, lambda t: params.gram(X, t), y, theta)  # dF/dK + autograd
+    for value, grad in ((F, g), (F_c, g_c)):
+        torch.testing.assert_close(value, F_ref.detach(), rtol=1e-12, atol=1e-10)
+        torch.testing.assert_close(grad, th.grad, rtol=1e-9, atol=1e-9)
+
+
+def test_maximise_reaches_the_closed_form_optimum_with_priors_bounds_and_failures():
+    """F(theta) = -sum w (theta - mu)^2 / 2 with a N(0, sd^2) prior on theta[0:2]: the optimum is
+    mu w / (w + 1/sd^2) on the prior's entries and mu elsewhere, clipped to the bounds. Chosen
+    evaluations raise (a failed factorisation): one failed trial is stepped around; after a run
+    of them the line search gives up and the best point evaluated so far comes back."""
+    mu = np.array([1.0, -2.0, 0.5, 1.9])
+    w = np.array([2.0, 0.5, 1.0, 3.0])
+    n = 10
+    bounds = [(None, None), (None, None), (None, 0.2), (None, None)]
+    want = mu.copy()
+    want[:2] = mu[:2] * w[:2] / (w[:2] + 1 / 1.5 ** 2)
+    want[2] = 0.2
+
+    def run(failing_calls):
+        seen = []
+
+        def value_and_grad(t):
+            if len(seen) + 1 in failing_calls:
+                seen.append((None, -np.inf))
+                raise RuntimeError("not positive definite")
+            tn = t.numpy().copy()
+            seen.append((tn, -0.5 * np.sum(w * (tn - mu) ** 2) - 0.5 * np.sum((tn[:2] / 1.5) ** 2)))
+            mt, wt = torch.as_tensor(mu, dtype=DTYPE), torch.as_tensor(w, dtype=DTYPE)
+            return -0.5 * (wt * (t - mt) ** 2).sum(), -wt * (t - mt)
+
+        best = maximise(value_and_grad, np.array([0.0, 0.0, 0.0, -3.0]), n=n, bounds=bounds,
+                        priors=[LogNormalPrior(0, 2, 1.5)], max_iter=100)
+        return best, seen
+
+    best, seen = run({2})
+    np.testing.assert_allclose(best.theta, want, atol=1e-6)
+    # value: the objective per sample without the prior
+    assert best.value == pytest.approx(-0.5 * np.sum(w * (want - mu) ** 2) / n, abs=1e-10)
+    best, seen = run({3, 4, 5})
+    assert np.abs(best.theta - want).max() > 0.1  # stopped early ...
+    top = max(seen, key=lambda s: s[1])[0]
+    np.testing.assert_array_equal(best.theta, top)  # ... on the best point it evaluated
+    assert maximise(lambda t: (_ for _ in ()).throw(RuntimeError("x")), np.zeros(2), n=1) is None
+
+
+def test_leave_block_out_optimiser_improves_its_objective():
+    """The EM's objective through the same optimiser: the returned hyperparameters must score
+    better than the start on the brute-force leave-block-out log predictive."""
+    from mmgp.gp.objectives import leave_block_out
+
+    X, Y = toy(N=60, noise=0.2)
+    ts = np.arange(60) * 0.1
+    Xs = torch.as_tensor((X - X.mean(0)) / X.std(0), dtype=DTYPE)
+    Ys = torch.as_tensor((Y - Y.mean(0)) / Y.std(0), dtype=DTYPE)
+    init = default_hyper(2, 2)
+    hyp, value = optimise_hyper(Xs, Ys, init, objective=leave_block_out(ts, 1.0), max_iter=30)
+
+    def block_lpd(h):  # numpy reference: condition on the other blocks, score this block
+        total, first = 0.0, 0
+        while first < 60:  # consecutive blocks spanning at most 1 s, each opened by its first sample
+            test = np.flatnonzero((np.arange(60) >= first) & (ts - ts[first] <= 1.0))
+            first = test[-1] + 1
+            train = np.setdiff1d(np.arange(60), test)
+            for j in range(2):
+                k = lambda A, B: h.signal_var[j] * np.exp(-0.5 * (((A[:, None] - B[None]) / h.lengthscale[j]) ** 2).sum(-1))  # noqa: E731
+                Xn, yn = Xs.numpy(), Ys.numpy()[:, j]
+                Kt = k(Xn[train], Xn[train]) + h.noise_var[j] * np.eye(len(train))
+                ks = k(Xn[train], Xn[test])
+                mean = ks.T @ np.linalg.solve(Kt, yn[train])
+                var = h.signal_var[j] + h.noise_var[j] - np.einsum("ij,ij->j", ks, np.linalg.solve(Kt, ks))
+                total += np.sum(-0.5 * (np.log(2 * np.pi * var) + (yn[test] - mean) ** 2 / var))
+        return total
+
+    assert value * 60 == pytest.approx(block_lpd(hyp), rel=1e-8)
+    assert block_lpd(hyp) > block_lpd(init) + 5.0
 
 
 def test_optimiser_improves_loo_objective_and_reports_it():
@@ -178,8 +254,8 @@ def test_batched_outputs_equal_single_output_fits():
                                    atol=2e-3 * np.abs(Y[:, j]).std())
 
 
-# ---------------------------------------------------------------- scalable GP (mmgp.gp_sparse)
-from mmgp.gp.sparse import SparseGP, make_gp
+# ---------------------------------------------------------------- scalable GP (mmgp.gp.sparse)
+from mmgp.gp.sparse import EXACT_MAX_SAMPLES, SparseGP, make_gp
 
 
 def test_sparse_gp_with_all_inputs_inducing_equals_exact_gp():
@@ -226,8 +302,8 @@ def test_sparse_gp_matches_dense_sgpr_formulas_and_dtc_loo_refits():
 
 
 def test_make_gp_switches_at_threshold_and_sparse_fit_is_accurate():
-    assert type(make_gp(3000, n_inducing=50)) is ExactGP
-    assert type(make_gp(3001, n_inducing=50)) is SparseGP
+    assert type(make_gp(EXACT_MAX_SAMPLES, n_inducing=50)) is ExactGP
+    assert type(make_gp(EXACT_MAX_SAMPLES + 1, n_inducing=50)) is SparseGP
     assert type(make_gp(500, exact_threshold=100)) is SparseGP
     X, Y = toy(N=600, noise=0.05)
     Xq, Yq = toy(N=200, noise=0.0, seed=5)
@@ -241,13 +317,40 @@ def test_subset_method_loo_is_exact_on_subset_and_held_out_elsewhere():
     X, Y = toy(N=120)
     hyp = fixed_hyper(2, 2)
     sp = SparseGP(method="subset", n_subset=50).fit(X, Y, hyper=hyp, optimise=False)
-    lm, ls = sp.loo_predictive()
-    rest = np.setdiff1d(np.arange(len(X)), sp.subset_)
-    # reference: an exact GP on the subset, with the scalers of the full data
-    ex = ExactGP().fit(X[sp.subset_], Y[sp.subset_], hyper=hyp, optimise=False)
-    m_ref, s_ref = ex.predict(X[rest], include_noise=True)
-    np.testing.assert_allclose(lm[rest], m_ref, rtol=1e-12)
-    np.testing.assert_allclose(ls[rest], s_ref, rtol=1e-12)
-    np.testing.assert_allclose(lm[sp.subset_], ex.loo_predictive()[0], rtol=1e-12)
-    ref = -0.5 * (np.log(2 * np.pi * ls ** 2) + ((Y - lm) / ls) ** 2).sum()
+    lm, lsd = sp.loo_predictive()
+    sub = sp.subset_
+    rest = np.setdiff1d(np.arange(len(X)), sub)
+    assert len(sub) == 50 and len(np.unique(sub)) == 50
+    # numpy reference from the textbook formulas: the subset standardised by its own mean and
+    # population std, the hyperparameters in those units
+    xm, xs = X[sub].mean(0), X[sub].std(0)
+    for j in range(2):
+        ym, ys = Y[sub, j].mean(), Y[sub, j].std()
+        A, y = (X[sub] - xm) / xs, (Y[sub, j] - ym) / ys
+        k = lambda P, Q: hyp.signal_var[j] * np.exp(-0.5 * (((P[:, None] - Q[None]) / hyp.lengthscale[j]) ** 2).sum(-1))  # noqa: E731
+        K = k(A, A) + hyp.noise_var[j] * np.eye(50)
+        B = (X[rest] - xm) / xs
+        ks = k(A, B)
+        mean = ks.T @ np.linalg.solve(K, y) * ys + ym
+        var = (hyp.signal_var[j] + hyp.noise_var[j] - np.einsum("ij,ij->j", ks, np.linalg.solve(K, ks))) * ys ** 2
+        np.testing.assert_allclose(lm[rest, j], mean, rtol=1e-9, atol=1e-9 * np.abs(Y).max())
+        np.testing.assert_allclose(lsd[rest, j], np.sqrt(var), rtol=1e-8)
+        for i in range(0, 50, 7):  # brute-force LOO refits inside the subset
+            r = np.arange(50) != i
+            w = np.linalg.solve(K[np.ix_(r, r)], K[r, i])
+            assert lm[sub[i], j] == pytest.approx(w @ y[r] * ys + ym, rel=1e-9)
+            assert lsd[sub[i], j] == pytest.approx(np.sqrt(K[i, i] - K[r, i] @ w) * ys, rel=1e-8)
+    ref = -0.5 * (np.log(2 * np.pi * lsd ** 2) + ((Y - lm) / lsd) ** 2).sum()
     assert sp.loo_log_predictive() == pytest.approx(ref, rel=1e-12)
+
+
+def test_estimators_clone_and_refuse_to_predict_unfitted():
+    from sklearn.base import clone
+    from sklearn.exceptions import NotFittedError
+
+    gp = SparseGP(n_inducing=7, method="subset", max_iter=5)
+    twin = clone(gp)
+    assert twin.get_params() == gp.get_params() and twin.n_inducing == 7
+    for est in (ExactGP(), twin):
+        with pytest.raises(NotFittedError):
+            est.predict(np.zeros((2, 2)))

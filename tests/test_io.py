@@ -1,4 +1,4 @@
-"""Log and label reading (mmgp.io) against CONTRACT section 1, and atomic outputs.
+"""Log and label reading (mmgp.data.logs) against CONTRACT section 1 (outputs: test_outputs.py).
 
 Every bad input must give exactly one InputError that names the file and, where one exists,
 the column and the 0-based data row; the input file must be left byte-for-byte unchanged.
@@ -8,7 +8,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import stat
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from mmgp.errors import InputError
-from mmgp.data.outputs import atomic_output_dir, atomic_write_bytes, write_table
-from mmgp.data.logs import read_labels, read_log, write_log
+from mmgp.data.logs import read_labels, read_log, read_table_header, write_log
 
 
 def good_frame(T=30, n=3, dq=False, ddq=False, seed=0):
@@ -358,113 +356,239 @@ def test_labels_missing_t(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# Atomic outputs
+# Issue 13: odd CSV dialects, duplicated columns, clock jumps, encodings
 # ---------------------------------------------------------------------------------------------
 
-def entries(folder: Path) -> list[str]:
-    return sorted(x.name for x in folder.iterdir())
+def european_csv(df: pd.DataFrame, sep: str) -> str:
+    """``df`` as a spreadsheet in a European locale writes it: ``sep`` between cells, decimal commas."""
+    lines = [sep.join(df.columns)]
+    for row in df.itertuples(index=False):
+        lines.append(sep.join(repr(float(v)).replace(".", ",") for v in row))
+    return "\n".join(lines) + "\n"
 
 
-def test_atomic_dir_success(tmp_path):
-    out = tmp_path / "out"
-    with atomic_output_dir(out) as d:
-        assert d != out and not out.exists()
-        (d / "a.txt").write_text("hello")
-    assert (out / "a.txt").read_text() == "hello"
-    assert entries(tmp_path) == ["out"]
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_decimal_comma_csv_is_read_exactly(tmp_path, sep):
+    df = good_frame(T=20, n=2, dq=True)
+    p = tmp_path / "log.csv"
+    p.write_text(european_csv(df, sep))
+    before = digest(p)
+    log = read_log(p)
+    assert digest(p) == before
+    np.testing.assert_array_equal(log.t, df["t"].to_numpy())
+    np.testing.assert_array_equal(log.q, df[["q_0", "q_1"]].to_numpy())
+    np.testing.assert_array_equal(log.dq, df[["dq_0", "dq_1"]].to_numpy())
+    np.testing.assert_array_equal(log.tau, df[["tau_0", "tau_1"]].to_numpy())
 
 
-def test_atomic_dir_failure_leaves_nothing(tmp_path):
-    out = tmp_path / "out"
-    with pytest.raises(RuntimeError):
-        with atomic_output_dir(out) as d:
-            (d / "a.txt").write_text("partial")
-            raise RuntimeError("boom")
-    assert entries(tmp_path) == []
+def test_semicolon_csv_with_decimal_points_is_read(tmp_path):
+    df = good_frame(T=15, n=1)
+    p = tmp_path / "log.csv"
+    df.to_csv(p, sep=";", index=False)
+    np.testing.assert_array_equal(read_log(p).tau, df[["tau_0"]].to_numpy())
 
 
-def test_atomic_dir_keyboard_interrupt_leaves_nothing(tmp_path):
-    out = tmp_path / "out"
-    with pytest.raises(KeyboardInterrupt):
-        with atomic_output_dir(out) as d:
-            (d / "a.txt").write_text("partial")
-            raise KeyboardInterrupt
-    assert entries(tmp_path) == []
+def test_decimal_point_among_decimal_commas_names_the_cell(tmp_path):
+    df = good_frame(T=15, n=1)
+    text = european_csv(df, ";").splitlines()
+    cells = text[1 + 8].split(";")
+    cells[2] = cells[2].replace(",", ".")  # tau_0 of data row 8
+    text[1 + 8] = ";".join(cells)
+    p = tmp_path / "log.csv"
+    p.write_text("\n".join(text) + "\n")
+    expect_error(lambda: read_log(p), p, column="tau_0", row=8, contains="decimal commas")
 
 
-def test_atomic_dir_refuses_non_empty_without_force(tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
-    entered = []
-    with pytest.raises(InputError) as info:
-        with atomic_output_dir(out):
-            entered.append(1)
-    assert not entered
-    assert str(out) in str(info.value)
-    assert entries(out) == ["old.txt"] and (out / "old.txt").read_text() == "old"
-    assert entries(tmp_path) == ["out"]
+def test_header_mixing_separators(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_text("t;q_0,tau_0\n" + "0;1,2\n" * 12)
+    expect_error(lambda: read_log(p), p, contains="mixes separators ',' and ';'")
 
 
-def test_atomic_dir_accepts_empty_existing(tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    with atomic_output_dir(out) as d:
-        (d / "new.txt").write_text("new")
-    assert entries(out) == ["new.txt"]
-    assert entries(tmp_path) == ["out"]
+def test_space_separated_header(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_text("t q_0 tau_0\n" + "".join(f"{i} 1 2\n" for i in range(12)))
+    expect_error(lambda: read_log(p), p, contains="spaces")
 
 
-def test_atomic_dir_refuses_file(tmp_path):
-    out = tmp_path / "out"
-    out.write_text("x")
-    with pytest.raises(InputError):
-        with atomic_output_dir(out, force=True):
-            pass
-    assert out.read_text() == "x"
+def test_header_cells_with_spaces_after_commas(tmp_path):
+    df = good_frame(T=12, n=2)
+    p = tmp_path / "log.csv"
+    df.to_csv(p, index=False)
+    lines = p.read_text().splitlines()
+    p.write_text("\n".join([", ".join(lines[0].split(","))] + lines[1:]) + "\n")
+    np.testing.assert_array_equal(read_log(p).q, df[["q_0", "q_1"]].to_numpy())
 
 
-def test_atomic_dir_force_replaces_only_on_success(tmp_path):
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
-    (out / "sub").mkdir()
-    (out / "sub" / "deep.txt").write_text("deep")
-    with pytest.raises(ValueError):
-        with atomic_output_dir(out, force=True) as d:
-            (d / "new.txt").write_text("new")
-            raise ValueError("fails half-way")
-    assert entries(out) == ["old.txt", "sub"]
-    assert (out / "sub" / "deep.txt").read_text() == "deep"
-    assert entries(tmp_path) == ["out"]
-    with atomic_output_dir(out, force=True) as d:
-        (d / "new.txt").write_text("new")
-        assert (out / "old.txt").exists()  # old content stays until the new one is complete
-    assert entries(out) == ["new.txt"]
-    assert entries(tmp_path) == ["out"]
+def test_missing_header_line(tmp_path):
+    p = tmp_path / "log.csv"
+    good_frame(T=12, n=1).to_csv(p, index=False, header=False)
+    expect_error(lambda: read_log(p), p, column="t", contains="header line")
 
 
-@pytest.fixture
-def umask022():
-    old = os.umask(0o022)
-    yield
-    os.umask(old)
+def test_missing_t_says_what_the_header_has(tmp_path):
+    p = write(good_frame(T=12, n=1).rename(columns={"t": "stamp"}), tmp_path / "log.csv")
+    expect_error(lambda: read_log(p), p, column="t", contains="'stamp'")
 
 
-def test_output_modes_under_umask_022(tmp_path, umask022):
-    out = tmp_path / "out"
-    with atomic_output_dir(out) as d:
-        write_table(d / "labels.parquet", pd.DataFrame({"t": [0.0, 1.0]}), metadata={"k": "v"})
-        write_table(d / "table.csv", pd.DataFrame({"t": [0.0, 1.0]}))
-        atomic_write_bytes(d / "report.json", b"{}")
-        (d / "plain.txt").write_text("x")
-    assert stat.S_IMODE(out.stat().st_mode) == 0o755
-    for name in ("labels.parquet", "table.csv", "report.json", "plain.txt"):
-        assert stat.S_IMODE((out / name).stat().st_mode) == 0o644, name
-    assert entries(out) == ["labels.parquet", "plain.txt", "report.json", "table.csv"]
-    assert pq.read_schema(out / "labels.parquet").metadata[b"k"] == b"v"
+def test_duplicated_csv_column(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_text("t,q_0,tau_0,q_0\n" + "".join(f"{0.01 * i},{i},{i},{-i}\n" for i in range(12)))
+    expect_error(lambda: read_log(p), p, column="q_0", contains="twice")
 
 
-def test_write_log_mode_under_umask_022(tmp_path, umask022):
-    p = write_log(tmp_path / "log.parquet", np.arange(12.0), np.zeros((12, 1)), np.zeros((12, 1)))
-    assert stat.S_IMODE(p.stat().st_mode) == 0o644
+def test_duplicated_parquet_column_is_one_line(tmp_path):
+    x = pa.array(0.01 * np.arange(12))
+    p = tmp_path / "log.parquet"
+    pq.write_table(pa.table([x, x, x, x], names=["t", "q_0", "tau_0", "q_0"]), p)
+    err = expect_error(lambda: read_log(p), p, column="q_0", contains="twice")
+    assert "\n" not in str(err)
+
+
+def test_duplicated_labels_column(tmp_path):
+    p = tmp_path / "labels.csv"
+    p.write_text("t,disturbed,disturbed\n" + "".join(f"{0.01 * i},0,1\n" for i in range(12)))
+    expect_error(lambda: read_labels(p), p, column="disturbed", contains="twice")
+
+
+def test_clock_jump_is_refused_at_read_time(tmp_path, suffix):
+    df = good_frame(T=30)
+    df.loc[17:, "t"] += 1.7e9  # epoch seconds after a controller restart
+    p = write(df, tmp_path / f"log{suffix}")
+    err = expect_error(lambda: read_log(p), p, column="t", row=17)
+    assert "1.7e+09 s" in str(err)
+
+
+@pytest.mark.parametrize("pause_s", [60.0, 3600.0, 16 * 3600.0, 86_000.0])
+def test_pauses_up_to_a_day_are_accepted(tmp_path, pause_s):
+    df = good_frame(T=30)
+    df.loc[12:, "t"] += pause_s
+    p = write(df, tmp_path / "log.parquet")
+    np.testing.assert_array_equal(read_log(p).t, df["t"].to_numpy())
+
+
+def test_epoch_time_stamps_throughout_are_accepted(tmp_path):
+    df = good_frame(T=30)
+    df["t"] += 1.7e9
+    p = write(df, tmp_path / "log.parquet")
+    np.testing.assert_array_equal(read_log(p).t, df["t"].to_numpy())
+
+
+def test_latin1_csv(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_bytes(b"t,q_0,tau_0\n" + b"0,1,2\n" * 5 + "# mesur\u00e9\n".encode("latin-1"))
+    expect_error(lambda: read_log(p), p, contains="not UTF-8 text (byte 0xE9 on line 7)")
+
+
+def test_utf16_csv(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_bytes(good_frame(T=12, n=1).to_csv(index=False).encode("utf-16"))
+    expect_error(lambda: read_log(p), p, contains="UTF-16")
+
+
+def test_utf8_bom_csv_is_read(tmp_path):
+    df = good_frame(T=12, n=1)
+    p = tmp_path / "log.csv"
+    p.write_bytes(df.to_csv(index=False).encode("utf-8-sig"))
+    np.testing.assert_array_equal(read_log(p).t, df["t"].to_numpy())
+
+
+@pytest.mark.parametrize("content,contains", [
+    (bytes(range(256)) * 4, "binary content"),
+    (b"\n\n   \n", "empty"),
+    (b"PAR1\x00\x00", "Parquet file with a CSV name"),
+])
+def test_garbage_csv_is_one_line(tmp_path, content, contains):
+    p = tmp_path / "log.csv"
+    p.write_bytes(content)
+    err = expect_error(lambda: read_log(p), p, contains=contains)
+    assert "\n" not in str(err)
+
+
+def test_header_only_labels(tmp_path):
+    p = tmp_path / "labels.csv"
+    p.write_text("t,disturbed\n")
+    expect_error(lambda: read_labels(p, t=np.arange(3.0)), p, contains="header only")
+
+
+def test_row_with_extra_fields(tmp_path):
+    p = write(good_frame(T=12, n=1), tmp_path / "log.csv")
+    lines = p.read_text().splitlines()
+    lines[1 + 6] += ",9"
+    p.write_text("\n".join(lines) + "\n")
+    expect_error(lambda: read_log(p), p, row=6, contains="line 8 has 4 fields")
+
+
+def test_first_row_with_extra_fields(tmp_path):
+    # pandas would take the first column as an index (or drop the extra field with a warning)
+    p = write(good_frame(T=12, n=1), tmp_path / "log.csv")
+    lines = p.read_text().splitlines()
+    lines[1] += ",9"
+    p.write_text("\n".join(lines) + "\n")
+    expect_error(lambda: read_log(p), p, row=0, contains="the first data row has 4 fields but the header has 3")
+
+
+def test_row_with_missing_field(tmp_path):
+    p = write(good_frame(T=12, n=1), tmp_path / "log.csv")
+    lines = p.read_text().splitlines()
+    lines[1 + 4] = lines[1 + 4].rsplit(",", 1)[0]
+    p.write_text("\n".join(lines) + "\n")
+    expect_error(lambda: read_log(p), p, column="tau_0", row=4, contains="missing value")
+
+
+def test_timestamp_typed_time_column(tmp_path):
+    df = good_frame(T=12, n=1)
+    df["t"] = pd.Timestamp("2024-01-01") + pd.to_timedelta(df["t"], unit="s")
+    p = write(df, tmp_path / "log.parquet")
+    expect_error(lambda: read_log(p), p, column="t", contains="type")
+
+
+def test_list_typed_parquet_column(tmp_path):
+    df = good_frame(T=12, n=1)
+    df["q_0"] = [[v, v] for v in df["q_0"]]
+    p = write(df, tmp_path / "log.parquet")
+    expect_error(lambda: read_log(p), p, column="q_0", row=0)
+
+
+def test_labels_mode_too_large_for_an_integer(tmp_path):
+    df = labels_frame().astype({"mode": float})
+    df.loc[5, "mode"] = 1e300
+    p = write(df, tmp_path / "labels.parquet")
+    expect_error(lambda: read_labels(p), p, column="mode", row=5)
+
+
+def test_input_error_is_one_line():
+    err = InputError("first line\nsecond line", file="a\nb.csv", column="q_0", row=3)
+    assert "\n" not in str(err)
+    assert str(err) == "file a; b.csv, column 'q_0', row 3: first line; second line"
+
+
+def test_read_table_header_reads_as_read_log_does(tmp_path):
+    p = tmp_path / "log.csv"
+    p.write_text(european_csv(good_frame(T=12, n=2), ";"))
+    assert read_table_header(p) == (["t", "q_0", "q_1", "tau_0", "tau_1"], {})
+    p = write(good_frame(T=12, n=1), tmp_path / "log.parquet", metadata={"robot": "panda",
+                                                                       "joint_names": '["j"]'})
+    assert read_table_header(p) == (["t", "q_0", "tau_0"], {"robot": "panda", "joint_names": ["j"]})
+    p = tmp_path / "dup.csv"
+    p.write_text("t,q_0,q_0\n")
+    expect_error(lambda: read_table_header(p), p, column="q_0")
+
+
+def test_integer_too_large_for_float64(tmp_path):
+    # pandas keeps a 400-digit cell as a Python int, and pd.to_numeric then raised OverflowError
+    p = write(good_frame(T=12, n=1), tmp_path / "log.csv")
+    lines = p.read_text().splitlines()
+    cells = lines[1 + 3].split(",")
+    cells[1] = "9" * 400
+    lines[1 + 3] = ",".join(cells)
+    p.write_text("\n".join(lines) + "\n")
+    expect_error(lambda: read_log(p), p, column="q_0", row=3, contains="found inf")
+
+
+@pytest.mark.parametrize("name", ["q_00", "q_\u0660", "q_0\n"])
+def test_near_contract_column_names_are_not_joint_columns(tmp_path, name):
+    # 'q_00' was taken for joint 0 and then looked up as 'q_0': a KeyError (found by fuzzing)
+    df = good_frame(T=12, n=2).rename(columns={"q_0": name})
+    p = write(df, tmp_path / "log.parquet")
+    expect_error(lambda: read_log(p), p, column="q_0")

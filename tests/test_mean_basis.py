@@ -8,13 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmgp.config import load_config
 from mmgp.models.robust import fit_basis_coefficients, fit_shared_coefficients
 from mmgp.errors import InputError
-from mmgp.models.trained import TrainedModel, train
+from mmgp import MultimodalGP
 from mmgp.models.features import resolve_mean_basis
 from mmgp.physics.robot import load_robot
-from mmgp.sim.recording import panda_modes
+from mmgp.sim import panda_modes
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
 
@@ -74,7 +73,7 @@ def test_mean_basis_resolution():
     with pytest.raises(InputError, match="rbd"):
         resolve_mean_basis("rbd", None, "residual")
     with pytest.raises(InputError, match="mean_basis"):
-        load_config(mean_basis="linear")
+        MultimodalGP(mean_basis="linear").fit(t=np.arange(20) * 0.01, q=np.zeros((20, 1)), tau=np.zeros((20, 1)))
 
 
 def test_trained_payload_model_round_trips_through_disk(tmp_path):
@@ -82,16 +81,16 @@ def test_trained_payload_model_round_trips_through_disk(tmp_path):
     log = tmp_path / "panda.parquet"
     rec.write(log)
     robot = load_robot(log_path=log)
-    cfg = load_config(max_sweeps=3, min_sweeps=2, average_last=1, fit_iter=8, fit_points=150, max_support=200)
-    res = train([log], cfg, robot=robot)
-    assert res.report["mean_basis"]["kind"] == "payload" and 7 <= res.report["mean_basis"]["rank"] <= 10
-    res.model.save(tmp_path)
-    back = TrainedModel.load(tmp_path)
+    model = MultimodalGP(robot=robot, max_sweeps=3, min_sweeps=2, average_last=1, fit_iter=8, fit_points=150,
+                         max_support=200).fit(log)
+    assert model.report_["mean_basis"]["kind"] == "payload" and 7 <= model.report_["mean_basis"]["rank"] <= 10
+    model.save(tmp_path)
+    back = MultimodalGP.load(tmp_path)
     assert back.basis_kind_ == "payload"
-    np.testing.assert_array_equal(back.basis_coef_[0], res.model.basis_coef_[0])
+    np.testing.assert_array_equal(back.basis_coef_[0], model.basis_coef_[0])
     rows = slice(20, 90)   # after the start transient, before the first push (t >= 1 s)
     q, dq, ddq = rec.q[rows], rec.info["dq_true"][rows], rec.info["ddq_true"][rows]
-    m1, s1 = res.model.predict(q, dq, ddq)
+    m1, s1 = model.predict(q, dq, ddq)
     m2, s2 = back.predict(q, dq, ddq)
     np.testing.assert_allclose(m2, m1, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(s2, s1, rtol=1e-10, atol=1e-12)
@@ -100,3 +99,34 @@ def test_trained_payload_model_round_trips_through_disk(tmp_path):
     assert rec.info["tau_push"][rows].max() == 0.0
     err = m1 - rec.info["tau_true"][rows]
     assert np.sqrt(np.mean(err ** 2)) < 0.05 * rec.info["tau_true"][rows].std()
+
+
+def test_robust_regression_solves_its_estimating_equations_and_ignores_outliers():
+    """The diagnosis's whole-library fit (coefficients shared by all outputs, masked equations,
+    Huber then Tukey steps, Gram solves): at convergence the coefficients solve the Tukey
+    M-estimating equations sum_t w(r_tj / (k s_j)) r_tj A_tj = 0 with the final residuals'
+    MAD scale; gross outliers (pushes) get weight zero, so the fit agrees with least squares on
+    the clean equations alone."""
+    from mmgp.models.robust import TUKEY_K, robust_regression
+
+    rng = np.random.default_rng(7)
+    N, n, p = 600, 3, 4
+    A = rng.normal(size=(N, n, p))
+    truth = np.array([0.5, -1.0, 2.0, 0.3])
+    Y = A @ truth + 0.05 * rng.normal(size=(N, n))
+    pushed = np.zeros((N, n), bool)
+    pushed[100:130] = True
+    Y[pushed] += 20.0
+    mask = (rng.uniform(size=(N, n)) > 0.2).astype(float)
+    fit = robust_regression(A, Y, mask=mask, huber_steps=50, tukey_steps=50, tol=1e-12, centre=False, solver="gram")
+    r = Y - A @ fit.coef
+    s = np.array([1.4826 * np.median(np.abs(r[mask[:, j] > 0, j])) for j in range(n)])
+    u = np.abs(r) / (TUKEY_K * s)
+    w = mask * np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
+    score = np.einsum("tj,tj,tjp->p", w, r, A)
+    assert np.abs(score).max() < 1e-5 * np.abs(np.einsum("tj,tjp->p", w * np.abs(r), np.abs(A))).max()
+    assert (fit.weights[pushed] == 0).all()
+    clean = (mask > 0) & ~pushed
+    ols, *_ = np.linalg.lstsq(A[clean], Y[clean], rcond=None)
+    se = 0.05 / np.sqrt(clean.sum())
+    np.testing.assert_allclose(fit.coef, ols, atol=5 * se * np.sqrt(p))

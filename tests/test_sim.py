@@ -6,7 +6,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from mmgp.sim import recording as sim
+import mmgp.sim as sim
 from mmgp.data.logs import read_labels, read_log
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]

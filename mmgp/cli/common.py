@@ -1,11 +1,16 @@
-"""What every command shares: the typer app, the one-line error with exit status 2, robots, progress."""
+"""What every command shares: the typer app, ``--version``, the one-line error with exit status 2,
+robots, the options several commands take, and progress display."""
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import typer
 
+from .._version import __version__
 from ..errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -15,9 +20,24 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 EXIT_BAD_INPUT = 2
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"mmgp {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """Multimodal GP inverse dynamics from messy robot logs."""
+
+
 def _fail(exc: Exception) -> None:
     typer.echo(f"error: {exc}", err=True)
     raise typer.Exit(EXIT_BAD_INPUT)
+
+
+DEVICE_HELP = "torch device of the GPs: cpu (default), cuda, cuda:N or auto (cuda when there is one)."
 
 
 def _check_device(device: Optional[str]) -> None:
@@ -31,18 +51,169 @@ def _check_device(device: Optional[str]) -> None:
         raise InputError(f"--device {device}: {exc}") from None
 
 
+def _stop_on_sigterm(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+@contextlib.contextmanager
+def command_numerics(device: Optional[str] = None) -> Iterator[None]:
+    """What every command computes under: the one thread policy (:mod:`mmgp.threads`: one thread,
+    large factorisations on idle cores), ``device`` as the default device of every GP built
+    inside (:func:`mmgp.gp.linalg.default_device`), and SIGTERM (``timeout``, schedulers) turned
+    into an ordinary exit, so an interrupted command removes its unfinished output folder."""
+    from ..gp.linalg import default_device
+    from ..threads import limit_threads
+
+    _check_device(device)
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm) if in_main else None
+    try:
+        with default_device(device), limit_threads(1):
+            yield
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
+
+
 def _robot_for(log_path, robot: Optional[str], urdf: Optional[Path], n_joints: Optional[int] = None):
     from ..physics.robot import load_robot
 
     return load_robot(robot=robot, urdf=urdf, log_path=log_path, n_joints=n_joints)
 
 
-def _progress_printer(quiet: bool):
-    if quiet:
-        return None
+def parameter_default(func, name: str):
+    """The default of parameter ``name`` of ``func`` (what the library does when the CLI passes nothing)."""
+    import inspect
 
-    def show(rec):
-        typer.echo(f"  sweep {rec.sweep:3d}  log p(Y,s) {rec.log_joint:12.2f}  changed {rec.changed:6.1%}  "
-                   f"disturbed {rec.n_disturbed:5d}  modes {rec.mode_sizes}  ({rec.seconds:.2f} s)", err=True)
+    return inspect.signature(func).parameters[name].default
 
-    return show
+
+# Options several commands take, with one help text each.
+
+def out_dir_option() -> Path:
+    return typer.Option(..., "--out", help="Output folder (created; refused if non-empty).")
+
+
+def force_option(what: str = "--out") -> bool:
+    return typer.Option(False, "--force", help=f"Replace an existing {what}.")
+
+
+def quiet_option() -> bool:
+    return typer.Option(False, "--quiet", help="No progress output.")
+
+
+def robot_option() -> Optional[str]:
+    return typer.Option(None, "--robot", help="example-robot-data robot name (e.g. panda); default: "
+                                              "the one the log's metadata names.")
+
+
+def urdf_option() -> Optional[Path]:
+    return typer.Option(None, "--urdf", help="URDF file of the robot (instead of --robot).")
+
+
+def seed_option(default: Optional[int] = None) -> Optional[int]:
+    return typer.Option(default, "--seed", help="Random seed (same seed, same result).")
+
+
+class ProgressDisplay:
+    """Progress of long work on stderr: on a terminal a bar per stage with done/total, elapsed
+    time and ETA (rich) under the stage's lines; otherwise the lines alone (logs stay readable);
+    nothing at all when ``quiet``. Use as a context manager; :meth:`stage` starts a bar,
+    :meth:`step` reports a step (a line and/or the count done)."""
+
+    def __init__(self, quiet: bool = False, console=None):
+        self.quiet = quiet
+        self._console = console
+        self._bar = None
+        self._task = None
+
+    def __enter__(self) -> "ProgressDisplay":
+        from rich.console import Console
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                   TimeRemainingColumn)
+
+        console = self._console = self._console or Console(stderr=True)
+        if not self.quiet and console.is_terminal:
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console)
+            self._bar.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is not None:
+            self._finish_stage()
+            self._bar.stop()
+            self._bar = None
+
+    @property
+    def live(self) -> bool:
+        """Whether a bar is shown (a terminal, not quiet)."""
+        return self._bar is not None
+
+    def _finish_stage(self) -> None:
+        # A stage that ends early (EM converged before its sweep limit) shows as complete.
+        if self._task is not None:
+            done = max(self._current().completed, 1)
+            self._bar.update(self._task, total=done, completed=done)
+
+    def _current(self):
+        return next(t for t in self._bar.tasks if t.id == self._task)
+
+    def stage(self, description: str, total: int | None) -> None:
+        """Start a bar for ``total`` steps (None: unknown, no ETA); the previous one is completed."""
+        if self._bar is not None:
+            self._finish_stage()
+            self._task = self._bar.add_task(description, total=total)
+
+    def step(self, line: str | None = None, *, completed: int | None = None, advance: int = 0,
+             total: int | None = None) -> None:
+        """Report a step: print ``line`` (above the bar on a terminal), then set the bar to
+        ``completed`` steps or move it on by ``advance`` (and its length to ``total``, once known)."""
+        if self.quiet:
+            return
+        if self._bar is None:
+            if line is not None:
+                self._console.print(line, markup=False, highlight=False, emoji=False, soft_wrap=True)
+            return
+        if line is not None:
+            self._bar.console.print(line, markup=False, highlight=False, emoji=False)
+        if self._task is not None:
+            total = total if total is not None else self._current().total
+            if completed is not None and total is not None and completed > total:
+                total = completed  # a limit that was an estimate
+            self._bar.update(self._task, total=total, completed=completed, advance=advance or None)
+
+
+def sweep_line(rec) -> str:
+    """One EM sweep (a :class:`mmgp.models.convergence.SweepRecord`) on one line."""
+    return (f"  sweep {rec.sweep:3d}  log p(Y,s) {rec.log_joint:12.2f}  changed {rec.changed:6.1%}  "
+            f"disturbed {rec.n_disturbed:5d}  modes {rec.mode_sizes}  ({rec.seconds:.2f} s)")
+
+
+class SweepProgress:
+    """The EM's per-sweep callback (``MultimodalGP(progress=...)``) on a :class:`ProgressDisplay`:
+    one line per sweep and a bar per number of modes tried, against ``limit`` sweeps (the
+    sweep limit plus the averaged sweeps: the ETA is an upper bound, the EM may converge sooner)."""
+
+    def __init__(self, display: ProgressDisplay, limit: int):
+        self.display = display
+        self.limit = limit
+        self._modes = None
+
+    def __call__(self, rec) -> None:
+        k = len(rec.mode_sizes)
+        if k != self._modes:
+            if self._modes is not None:  # --modes auto: the sweep count restarts for each candidate
+                self.display.step(f"  --modes auto: {self._modes} mode(s) done; now trying {k}")
+            self._modes = k
+            self.display.stage(f"EM, {k} mode(s)", self.limit)
+        self.display.step(sweep_line(rec), completed=rec.sweep + 1)
+
+
+def sweep_limit(settings: dict) -> int:
+    """The most sweeps the EM of ``MultimodalGP(**settings)`` runs: ``max_sweeps`` + ``average_last``."""
+    from ..estimator import MultimodalGP
+
+    defaults = MultimodalGP().get_params()
+    return int(settings.get("max_sweeps", defaults["max_sweeps"])) + int(settings.get("average_last",
+                                                                                      defaults["average_last"]))

@@ -7,30 +7,35 @@ from typing import Optional
 import typer
 
 from ..errors import InputError
-from .common import _check_device, _fail, _robot_for, app
+from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, _robot_for, app, command_numerics,
+                     force_option, out_dir_option, parameter_default, quiet_option, robot_option, urdf_option)
 
 
 @app.command()
 def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
-             out: Path = typer.Option(..., "--out"),
-             robot: Optional[str] = typer.Option(None, "--robot"),
-             urdf: Optional[Path] = typer.Option(None, "--urdf"),
-             force: bool = typer.Option(False, "--force")):
+             out: Path = out_dir_option(),
+             robot: Optional[str] = robot_option(),
+             urdf: Optional[Path] = urdf_option(),
+             config: Optional[Path] = typer.Option(None, "--config", help="YAML settings file; its section "
+                                                   "'diagnose:' holds Diagnoser settings."),
+             device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
+             force: bool = force_option(),
+             quiet: bool = quiet_option()):
     """Locate the sim-vs-real mismatch, name the missing physics, fit it, show the held-out gain."""
-    from ..diagnosis.pipeline import diagnose as run_diagnose
     from ..data.outputs import atomic_output_dir
-    from ..data.logs import read_log
-    from ..data.differentiation import complete_derivatives
+    from ..config import load_settings
+    from ..diagnosis import Diagnoser
 
     try:
+        _check_device(device)
+        diagnoser = Diagnoser(**load_settings(config, "diagnose", Diagnoser))
         robot_model = _robot_for(log, robot, urdf)
         if robot_model is None:
             raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                              "(or name one in the log's metadata)", file=log)
-        lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints, joint_names=robot_model.joint_names))
-        with atomic_output_dir(out, force=force) as tmp:
-            res = run_diagnose(lg, robot_model)
-            res.write(tmp)
+        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            shown.stage("diagnose", None)  # no stages reported yet: elapsed time only
+            diagnoser.fit(log, robot_model).report(tmp)
     except InputError as exc:
         _fail(exc)
     report = out / "report.md"
@@ -39,12 +44,13 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
 
 @app.command()
 def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
-            out: Path = typer.Option(..., "--out"),
-            robot: Optional[str] = typer.Option(None, "--robot"),
-            urdf: Optional[Path] = typer.Option(None, "--urdf"),
+            out: Path = out_dir_option(),
+            robot: Optional[str] = robot_option(),
+            urdf: Optional[Path] = urdf_option(),
             max_train: int = typer.Option(1000, "--max-train", help="Training samples per fold."),
-            device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, auto."),
-            force: bool = typer.Option(False, "--force")):
+            device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
+            force: bool = force_option(),
+            quiet: bool = quiet_option()):
     """Held-out (time-block) normalised MSE per joint: rigid body only, GP only, rigid body + GP."""
     from ..evaluation.compare import compare as run_compare, format_compare, write_compare
     from ..data.outputs import atomic_output_dir
@@ -56,9 +62,10 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
         robot_model = _robot_for(log, robot, urdf)
         lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints if robot_model else None,
                                            joint_names=robot_model.joint_names if robot_model else None))
-        with atomic_output_dir(out, force=force) as tmp:
-            res = run_compare(lg, robot_model, max_train=max_train, gp_options={"device": device},
-                              progress=lambda msg: typer.echo(msg, err=True))
+        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            shown.stage("compare: folds", parameter_default(run_compare, "n_folds"))
+            res = run_compare(lg, robot_model, max_train=max_train,
+                              progress=lambda msg: shown.step(msg, advance=1))
             write_compare(res, tmp)
     except InputError as exc:
         _fail(exc)

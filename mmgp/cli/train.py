@@ -1,4 +1,8 @@
-"""Commands that learn from logs and use what was learned: train, predict, evaluate, demo."""
+"""Commands that learn from logs and use what was learned: train, predict, evaluate, demo.
+
+Each one parses its options, calls :class:`mmgp.MultimodalGP` and prints; training settings
+come from the ``train:`` section of ``--config`` with the flags on top.
+"""
 from __future__ import annotations
 
 import json
@@ -8,60 +12,95 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import _fail, _check_device, _progress_printer, _robot_for, app
+from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, app, command_numerics, force_option,
+                     out_dir_option, quiet_option, seed_option, sweep_limit)
 
 
-def _write_training_outputs(out: Path, result) -> None:
-    from ..data.outputs import write_table
-    from ..models.trained import labels_frame
-    from ..evaluation.plots import plot_labels, plot_trace
+def _modes(value: Optional[str]):
+    if value is None or value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise InputError(f"--modes: expected a positive integer or 'auto', got {value!r}") from None
 
+
+def _robot_option(robot: Optional[str], urdf: Optional[Path]):
+    if robot is not None and urdf is not None:
+        raise InputError("give either --robot or --urdf, not both")
+    return robot if robot is not None else urdf
+
+
+def _write_training_outputs(out: Path, model, evaluation: dict | None = None, title: str = "mmgp train") -> None:
+    """labels.parquet, report.json, model.npz + model.json, the two plots and report.html
+    (with the classification figures of ``evaluation`` when given)."""
     import numpy as np
 
-    labels = labels_frame(result)
+    from ..data.outputs import write_table
+    from ..evaluation.plots import plot_labels, plot_trace
+    from ..evaluation.reports import write_training_report
+
+    labels = model.labels_
     write_table(out / "labels.parquet", labels)
-    (out / "report.json").write_text(json.dumps(result.report, indent=2))
-    result.model.save(out)
-    t = np.concatenate([lg.t for lg in result.logs])
-    tau = np.concatenate([lg.tau for lg in result.logs])
+    (out / "report.json").write_text(json.dumps(model.report_, indent=2))
+    model.save(out)
+    t = np.concatenate([lg.t for lg in model.logs_])
+    tau = np.concatenate([lg.tau for lg in model.logs_])
     plot_labels(out / "labels.png", t, tau, labels["mode"].to_numpy(), labels["p_disturbed"].to_numpy(),
-                result.model.joint_names_)
-    plot_trace(out / "likelihood_trace.png", result.report["likelihood_trace"])
+                model.joint_names_)
+    plot_trace(out / "likelihood_trace.png", model.report_["likelihood_trace"])
+    write_training_report(out, model.report_, evaluation, title=title)
+
+
+def _summary(model) -> str:
+    rep = model.report_
+    spec = model.robot_spec_ or {}
+    return (f"{rep['n_samples']} samples, robot {spec.get('robot') or spec.get('urdf')}, {rep['n_modes']} mode(s), {rep['disturbance']['n_disturbed']} flagged "
+            f"disturbed; {rep['n_sweeps']} sweeps ({'converged' if rep['converged'] else 'sweep limit'}), "
+            f"{rep['timings']['total_s']:.1f} s.")
 
 
 @app.command()
 def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet or CSV)."),
-          out: Path = typer.Option(..., "--out", help="Output folder (created; refused if non-empty)."),
-          config: Optional[Path] = typer.Option(None, "--config", help="YAML settings (see configs/default.yaml)."),
+          out: Path = out_dir_option(),
+          config: Optional[Path] = typer.Option(None, "--config",
+                                                help="YAML settings, section 'train' ('mmgp config show default' "
+                                                     "prints every setting at its default)."),
           modes: Optional[str] = typer.Option(None, "--modes", help="Number of dynamic modes, or 'auto'."),
           disturbance: Optional[bool] = typer.Option(None, "--disturbance/--no-disturbance",
                                                      help="Disturbance mode (default on)."),
           robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name."),
           urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot."),
-          device: Optional[str] = typer.Option(None, "--device", help="torch device: cpu, cuda, auto."),
-          seed: Optional[int] = typer.Option(None, "--seed"),
-          force: bool = typer.Option(False, "--force", help="Replace a non-empty --out."),
-          quiet: bool = typer.Option(False, "--quiet", help="No per-sweep progress.")):
-    """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots."""
-    from ..config import load_config
+          device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
+          seed: Optional[int] = seed_option(),
+          force: bool = force_option(),
+          quiet: bool = quiet_option()):
+    """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
+    from ..config import load_settings
     from ..data.outputs import atomic_output_dir
-    from ..models.trained import train as run_train
+    from ..estimator import MultimodalGP
 
     try:
-        _check_device(device)
-        cfg = load_config(config, modes=modes, disturbance=disturbance, device=device, seed=seed)
-        robot_model = _robot_for(logs[0], robot, urdf)
-        with atomic_output_dir(out, force=force) as tmp:
-            typer.echo(f"training on {len(logs)} log(s): modes={cfg.modes}, disturbance={cfg.disturbance}, "
-                       f"robot={getattr(robot_model, 'name', None) or getattr(robot_model, 'urdf_path', None)}", err=True)
-            result = run_train(logs, cfg, robot=robot_model, progress=_progress_printer(quiet))
-            _write_training_outputs(tmp, result)
+        settings = load_settings(config, "train", MultimodalGP, n_modes=_modes(modes), disturbance=disturbance,
+                                 robot=_robot_option(robot, urdf), device=device, seed=seed)
+        with command_numerics(device), atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
+            model.fit(logs)
+            _write_training_outputs(tmp, model)
     except InputError as exc:
         _fail(exc)
-    rep = result.report
-    typer.echo(f"{rep['n_samples']} samples, {rep['n_modes']} mode(s), {rep['disturbance']['n_disturbed']} flagged "
-               f"disturbed; {rep['n_sweeps']} sweeps ({'converged' if rep['converged'] else 'sweep limit'}), "
-               f"{rep['timings']['total_s']:.1f} s. Wrote {out}/labels.parquet, report.json, model, plots.")
+    typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots, report.html.")
+
+
+def _check_model_device(model, model_dir: Path) -> None:
+    """A model trained on a device this machine lacks is refused with the way out."""
+    from ..gp.linalg import resolve_device
+
+    try:
+        resolve_device(model.device)
+    except ValueError:
+        raise InputError(f"the model was trained with device {model.device!r}, which this machine lacks: "
+                         "give --device cpu", file=model_dir) from None
 
 
 @app.command()
@@ -69,26 +108,32 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
             log: Path = typer.Argument(..., help="Log to predict (q, and dq/ddq or estimated)."),
             out: Path = typer.Option(..., "--out", help="Output Parquet file."),
             mode: int = typer.Option(0, "--mode", help="Mode to predict with (0 = nominal)."),
-            force: bool = typer.Option(False, "--force")):
+            device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP + " Default: the model's."),
+            force: bool = force_option()):
     """Predicted torque and its standard deviation per joint for a log."""
     import pandas as pd
 
+    from ..data.differentiation import SavitzkyGolay, complete_derivatives
     from ..data.logs import read_log
     from ..data.outputs import write_table
-    from ..models.trained import TrainedModel
-    from ..data.differentiation import SavitzkyGolay, complete_derivatives
+    from ..estimator import MultimodalGP
 
     try:
-        model = TrainedModel.load(model_dir)
+        model = MultimodalGP.load(model_dir)
+        if device is not None:
+            model.set_params(device=device)
+        else:
+            _check_model_device(model, model_dir)
         if out.exists() and not force:
             raise InputError("output exists (use --force to replace it)", file=out)
-        lg = complete_derivatives(read_log(log, n_joints=model.n_joints),
-                                  SavitzkyGolay(window_s=model.config.diff_window_s, cv=True))
-        if not 0 <= mode < model.n_modes:
-            raise InputError(f"--mode must be in 0..{model.n_modes - 1}")
-        mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)
+        if not 0 <= mode < model.n_modes_:
+            raise InputError(f"--mode must be in 0..{model.n_modes_ - 1}")
+        lg = complete_derivatives(read_log(log, n_joints=len(model.joint_names_)),
+                                  SavitzkyGolay(window_s=model.diff_window_s, cv=True))
+        with command_numerics(device):
+            mean, std = model.predict(lg.q, lg.dq, lg.ddq, mode=mode)
         cols = {"t": lg.t}
-        for j in range(model.n_joints):
+        for j in range(len(model.joint_names_)):
             cols[f"tau_hat_{j}"] = mean[:, j]
             cols[f"tau_std_{j}"] = std[:, j]
         write_table(out, pd.DataFrame(cols))
@@ -100,12 +145,12 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
 @app.command()
 def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp train'."),
              truth: Path = typer.Option(..., "--truth", help="Ground-truth labels (t, disturbed and/or mode).")):
-    """Classification figures against ground truth; writes DIR/evaluation.json."""
+    """Classification figures against ground truth; writes DIR/evaluation.json, adds them to DIR/report.html."""
     import pandas as pd
 
-    from ..evaluation.metrics import classification_figures, format_figures
     from ..data.outputs import atomic_write_bytes
-    from ..data.logs import read_labels
+    from ..evaluation.metrics import format_figures
+    from ..evaluation.reports import write_training_report
 
     try:
         lab_path = model_dir / "labels.parquet"
@@ -115,37 +160,43 @@ def evaluate(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp
         if "log" in pred.columns:
             raise InputError("evaluation of a model trained on several logs needs one truth file per log; "
                              "train on the log alone to evaluate it", file=lab_path)
-        tr = read_labels(truth, t=pred["t"].to_numpy())
-        fig = classification_figures(pred, tr)
+        fig = _figures(pred, truth)
         atomic_write_bytes(model_dir / "evaluation.json", json.dumps(fig, indent=2).encode())
+        if (model_dir / "report.json").is_file():  # the page now shows the figures too
+            write_training_report(model_dir, json.loads((model_dir / "report.json").read_text()), fig)
     except InputError as exc:
         _fail(exc)
     typer.echo(format_figures(fig))
 
 
+def _figures(pred, truth_path: Path) -> dict:
+    from ..data.logs import read_labels
+    from ..evaluation.metrics import classification_figures
+
+    return classification_figures(pred, read_labels(truth_path, t=pred["t"].to_numpy()))
+
+
 @app.command()
 def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folder."),
-         force: bool = typer.Option(False, "--force")):
+         force: bool = force_option(),
+         quiet: bool = quiet_option()):
     """Train and evaluate on the shipped 1-DOF replica of the source experiment (MuJoCo,
     0.73 kg load, Bowden-cable-like friction, pushes, 20 Hz) and print our figures beside the source's."""
-    from ..config import load_config
-    from ..evaluation.metrics import classification_figures, format_figures
     from ..data.outputs import atomic_output_dir, atomic_write_bytes
-    from ..data.logs import read_labels
-    from ..models.trained import labels_frame, train as run_train
+    from ..estimator import MultimodalGP
+    from ..evaluation.metrics import format_figures
     from ..resources import demo_files
 
     marker = ".mmgp-demo"
     if out.exists() and (out / marker).exists():
         force = True  # the demo may replace its own previous output
     try:
-        with atomic_output_dir(out, force=force) as tmp:
+        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
             log, lab = demo_files()
-            typer.echo(f"demo: training on {log}", err=True)
-            result = run_train([log], load_config(), progress=_progress_printer(False))
-            _write_training_outputs(tmp, result)
-            pred = labels_frame(result)
-            fig = classification_figures(pred, read_labels(lab, t=pred["t"].to_numpy()))
+            shown.step(f"demo: training on {log}")
+            model = MultimodalGP(progress=SweepProgress(shown, sweep_limit({}))).fit(log)
+            fig = _figures(model.labels_, lab)
+            _write_training_outputs(tmp, model, fig, title="mmgp demo: 1-DOF replica of the source experiment")
             atomic_write_bytes(tmp / "evaluation.json", json.dumps(fig, indent=2).encode())
             (tmp / marker).write_text("written by mmgp demo\n")
     except InputError as exc:
@@ -153,5 +204,5 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
     typer.echo("")
     typer.echo("1-DOF replica of the source experiment (Haninger 2016, ch. 5): disturbance classification")
     typer.echo(format_figures(fig, with_source=True))
-    typer.echo(f"\ntrained in {result.report['timings']['total_s']:.1f} s; outputs in {out}/ "
-               "(labels.parquet, report.json, evaluation.json, labels.png, likelihood_trace.png)")
+    typer.echo(f"\ntrained in {model.report_['timings']['total_s']:.1f} s; outputs in {out}/ "
+               "(report.html, labels.parquet, report.json, evaluation.json, labels.png, likelihood_trace.png)")

@@ -43,28 +43,40 @@ class SavitzkyGolay:
             w -= 2
         return w
 
+    def _uniform(self, t: np.ndarray, x: np.ndarray):
+        """(uniform times, x on them, step, whether t was uniform already)."""
+        dt = float(np.median(np.diff(t)))
+        if np.allclose(np.diff(t), dt, rtol=1e-3, atol=1e-9):
+            return t, x, dt, True
+        tu = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt)) + 1)
+        return tu, np.stack([np.interp(tu, t, x[:, j]) for j in range(x.shape[1])], axis=1), dt, False
+
+    def _windows(self, xu: np.ndarray, dt: float) -> list[int]:
+        w = self.window_samples(dt, xu.shape[0])
+        if w <= self.order:
+            raise InputError(f"too few samples ({xu.shape[0]}) to differentiate with a polynomial of order {self.order}")
+        if not (self.cv and self.window_s is None):
+            return [w] * xu.shape[1]
+        w_max = max(w, SavitzkyGolay(self.max_window_s, self.order).window_samples(dt, xu.shape[0]))
+        return [loo_window(xu[:, j], self.order, w, w_max) for j in range(xu.shape[1])]
+
+    def windows(self, t: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(n,) window length in samples (odd) used on each column of ``x`` (T, n) sampled at
+        ``t``: derivatives within half a window of either end come from the edge fit, extrapolated."""
+        _, xu, dt, _ = self._uniform(np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64))
+        return np.array(self._windows(xu, dt))
+
     def __call__(self, t: np.ndarray, x: np.ndarray, deriv: int) -> np.ndarray:
         """Derivative ``deriv`` (1 or 2) of ``x`` (T, n) sampled at ``t`` (T,); same shape."""
         t = np.asarray(t, dtype=np.float64)
         x = np.asarray(x, dtype=np.float64)
-        T = t.shape[0]
-        dt = float(np.median(np.diff(t)))
-        uniform = np.allclose(np.diff(t), dt, rtol=1e-3, atol=1e-9)
-        if uniform:
-            tu, xu = t, x
+        tu, xu, dt, uniform = self._uniform(t, x)
+        windows = self._windows(xu, dt)
+        if len(set(windows)) == 1 and not (self.cv and self.window_s is None):
+            d = savgol_filter(xu, windows[0], self.order, deriv=deriv, delta=dt, axis=0, mode="interp")
         else:
-            tu = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt)) + 1)
-            xu = np.stack([np.interp(tu, t, x[:, j]) for j in range(x.shape[1])], axis=1)
-        w = self.window_samples(dt, tu.shape[0])
-        if w <= self.order:
-            raise InputError(f"too few samples ({T}) to differentiate with a polynomial of order {self.order}")
-        if self.cv and self.window_s is None:
-            w_max = max(w, SavitzkyGolay(self.max_window_s, self.order).window_samples(dt, tu.shape[0]))
-            windows = [loo_window(xu[:, j], self.order, w, w_max) for j in range(xu.shape[1])]
             d = np.stack([savgol_filter(xu[:, j], wj, self.order, deriv=deriv, delta=dt, mode="interp")
                           for j, wj in enumerate(windows)], axis=1)
-        else:
-            d = savgol_filter(xu, w, self.order, deriv=deriv, delta=dt, axis=0, mode="interp")
         if uniform:
             return d
         return np.stack([np.interp(t, tu, d[:, j]) for j in range(x.shape[1])], axis=1)

@@ -24,6 +24,17 @@ def time_block_folds(T: int, n_folds: int = 5, gap: int = 0) -> list[tuple[np.nd
     return folds
 
 
+def spread_subset(idx: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """At most ``k`` of the time-ordered sample indices ``idx``, evenly spaced with a random
+    offset. Random picks put near-copies side by side, and their shared noise makes a
+    leave-one-out objective take noise for signal; evenly spaced picks keep them apart."""
+    if len(idx) <= k:
+        return idx
+    step = len(idx) / k
+    pos = np.floor(rng.uniform(0, step) + step * np.arange(k)).astype(int)
+    return idx[np.minimum(pos, len(idx) - 1)]
+
+
 def _blocks(ts: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     """Partition sorted times into consecutive blocks spanning at most ``length`` seconds:
     member indices (n_blocks, B) padded with 0, and a validity mask (n_blocks, B)."""

@@ -6,9 +6,12 @@ names the file, the column and the row, so the command line can print it and exi
 """
 from __future__ import annotations
 
+import csv
+import io
 import json
 import os
 import re
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
@@ -16,7 +19,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from ..errors import InputError
+from ..errors import InputError, describe, one_line
 from .outputs import write_table
 
 MIN_SAMPLES = 10
@@ -64,93 +67,297 @@ class RobotLog:
                        dq=pick(self.dq), ddq=pick(self.ddq))
 
 
-_COL = re.compile(r"^(q|dq|ddq|tau)_(\d+)$")
+# exactly the contract's names: ASCII digits without leading zeros ('q_00', 'q_\u0661' are not q_0, q_1)
+_COL = re.compile(r"(q|dq|ddq|tau)_(0|[1-9][0-9]*)")
+
+# A log may pause (an e-stop, a break, recording resumed the next morning), but a step in 't'
+# longer than a day is not a pause inside one recording: it is a clock change (epoch seconds
+# after a controller restart: ~1.7e9 s) or several recordings glued together, which belong in
+# separate log files (every command that trains takes several logs).
+MAX_TIME_STEP_S = 86_400.0
+
+SEPARATORS = {",": "','", ";": "';'", "\t": "tab"}
+_DECIMAL_COMMA = re.compile(rb"\d,\d")
+_QUOTED = re.compile(r'"[^"]*"')
+_LINE_BREAK = re.compile(rb"\r\n|\r|\n")
+_BLANK_LINES = re.compile(rb"(?:[ \t\f\v]*(?:\r\n|\r|\n))*")
+_FIELDS = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 
 
-def _read_table(path: Path) -> tuple[pd.DataFrame, dict]:
+# ---------------------------------------------------------------------------------------------
+# Tables: one reader for CSV and Parquet files, shared by logs and labels
+# ---------------------------------------------------------------------------------------------
+
+def _check_file(path: Path) -> str:
+    """The file's kind ("parquet" or "csv"), or an InputError when it cannot be a table."""
     if not path.exists():
         raise InputError("file does not exist", file=path)
     if not path.is_file():
         raise InputError("not a regular file", file=path)
     suffix = path.suffix.lower()
-    try:
-        if suffix in (".parquet", ".pq"):
-            import pyarrow.parquet as pq
+    if suffix in (".parquet", ".pq"):
+        return "parquet"
+    if suffix in (".csv", ".txt"):
+        return "csv"
+    raise InputError(f"unsupported file type '{suffix}': expected .parquet or .csv", file=path)
 
-            table = pq.read_table(path)
-            raw_meta = table.schema.metadata or {}
-            meta = {}
-            for k, v in raw_meta.items():
-                key = k.decode(errors="replace")
-                if key in ("robot", "urdf", "joint_names"):
-                    meta[key] = v.decode(errors="replace")
-            df = table.to_pandas()
-        elif suffix in (".csv", ".txt"):
-            df = pd.read_csv(path)
-            meta = {}
-        else:
-            raise InputError(f"unsupported file type '{suffix}': expected .parquet or .csv", file=path)
-    except InputError:
-        raise
-    except Exception as exc:  # pyarrow/pandas raise many types for unreadable files
-        raise InputError(f"unreadable file ({type(exc).__name__}: {exc})", file=path) from None
+
+def _refuse_duplicates(names: Sequence[str], path: Path) -> None:
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names):
+        if name in seen:
+            raise InputError(f"the column name appears twice (columns {seen[name]} and {i}, counted "
+                             "from 0): every column needs its own name", file=path, column=name)
+        seen[name] = i
+
+
+def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
+    import pyarrow.parquet as pq
+
+    try:
+        schema = pq.read_schema(path)
+    except Exception as exc:  # pyarrow raises several types for files that are not Parquet
+        raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
+    _refuse_duplicates(list(schema.names), path)
+    try:
+        df = pq.read_table(path).to_pandas()
+    except Exception as exc:
+        raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
+    meta = {}
+    for k, v in (schema.metadata or {}).items():
+        key = k.decode(errors="replace")
+        if key in ("robot", "urdf", "joint_names"):
+            meta[key] = v.decode(errors="replace")
     if "joint_names" in meta:
         try:
             names = json.loads(meta["joint_names"])
             if not (isinstance(names, list) and all(isinstance(s, str) for s in names)):
                 raise ValueError
-        except ValueError:
+        except (ValueError, RecursionError):
             raise InputError("metadata 'joint_names' is not a JSON list of strings", file=path) from None
         meta["joint_names"] = names
     return df, meta
 
 
-def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
+def _csv_bytes(path: Path) -> bytes:
+    """The file's bytes, checked to be UTF-8 text without NUL bytes (and without the UTF-8
+    byte-order mark, which is allowed). Bytes, not text: pandas parses them twice as fast."""
+    data = path.read_bytes()
+    if data.startswith(b"PAR1"):
+        raise InputError("this is a Parquet file with a CSV name: rename it to .parquet", file=path)
+    for mark, name in ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"),
+                       (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16")):
+        if data.startswith(mark):
+            raise InputError(f"the text is {name}: save the file as UTF-8", file=path)
+    if b"\x00" in data:
+        line = data[: data.index(b"\x00")].count(b"\n") + 1
+        raise InputError(f"binary content (a NUL byte on line {line}): expected CSV text", file=path)
     try:
-        arr = pd.to_numeric(df[col], errors="raise").to_numpy(dtype=np.float64)
-    except (ValueError, TypeError):
-        bad = pd.to_numeric(df[col], errors="coerce").isna() & df[col].notna()
-        row = int(np.flatnonzero(bad.to_numpy())[0]) if bad.any() else None
-        raise InputError("expected a number", file=path, column=col, row=row) from None
+        data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(f"not UTF-8 text (byte 0x{data[exc.start]:02X} on line {line}): expected a CSV "
+                         "file saved as UTF-8", file=path) from None
+    data = data.removeprefix(b"\xef\xbb\xbf")
+    if not data or data.isspace():
+        raise InputError("the file is empty: expected a header line such as 't,q_0,tau_0' and data rows",
+                         file=path)
+    return data
+
+
+def _csv_separator(header: str, path: Path) -> str:
+    """The one of ',', ';' and tab that the header line uses (',' for a single column)."""
+    bare = _QUOTED.sub("", header)
+    found = [s for s in SEPARATORS if s in bare]
+    if len(found) > 1:
+        raise InputError(f"the header line mixes separators {' and '.join(SEPARATORS[s] for s in found)}: "
+                         "expected one of ',', ';' or tab between column names", file=path)
+    if not found and len(bare.split()) > 1:
+        raise InputError(f"the header line {one_line(header, 60)!r} separates columns by spaces: "
+                         "expected ',', ';' or tab", file=path)
+    return found[0] if found else ","
+
+
+def _csv_header(header: str, sep: str, path: Path) -> list[str]:
+    try:
+        names = [c.strip() for c in next(csv.reader([header], delimiter=sep, skipinitialspace=True))]
+    except csv.Error as exc:
+        raise InputError(f"unreadable header line ({describe(exc)})", file=path) from None
+    names = [c if c else f"Unnamed: {i}" for i, c in enumerate(names)]
+    _refuse_duplicates(names, path)
+    return names
+
+
+def _check_first_row(body: memoryview, sep: str, n_names: int, path: Path) -> None:
+    """pandas silently drops what a first data row has beyond the header (or takes it for an
+    index), so that row is counted here."""
+    start = _BLANK_LINES.match(body).end()
+    brk = _LINE_BREAK.search(body, start)
+    first = bytes(body[start:brk.start() if brk else len(body)]).decode("utf-8")
+    if not first:
+        return
+    try:
+        n = len(next(csv.reader([first], delimiter=sep, skipinitialspace=True)))
+    except csv.Error as exc:
+        raise InputError(f"unreadable first data row ({describe(exc)})", file=path, row=0) from None
+    if n > n_names:
+        raise InputError(f"the first data row has {n} fields but the header has {n_names}", file=path, row=0)
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    """A CSV table. Rule: the separator is the one of ',', ';' or tab found in the header line;
+    with ';' or tab, a comma between two digits anywhere in the data makes ',' the decimal mark
+    (European spreadsheets), else it is '.'."""
+    data = _csv_bytes(path)
+    start = _BLANK_LINES.match(data).end()
+    h = len(_LINE_BREAK.findall(data, 0, start))  # lines before the header
+    brk = _LINE_BREAK.search(data, start)
+    header = data[start:brk.start() if brk else len(data)].decode("utf-8")
+    body = memoryview(data)[brk.end():] if brk else memoryview(b"")
+    sep = _csv_separator(header, path)
+    names = _csv_header(header, sep, path)
+    _check_first_row(body, sep, len(names), path)
+    decimal = "," if sep != "," and _DECIMAL_COMMA.search(body) else "."
+    try:
+        with warnings.catch_warnings():
+            # pandas drops the extra fields of a long first row with only a warning
+            warnings.simplefilter("error", pd.errors.ParserWarning)
+            df = pd.read_csv(io.BytesIO(body), encoding="utf-8", sep=sep, decimal=decimal, header=None,
+                             names=names, index_col=False, skipinitialspace=True, low_memory=False)
+    except pd.errors.ParserWarning:  # what _check_first_row does not see (a quoted line break)
+        raise InputError(f"the first data row has more fields than the {len(names)} of the header",
+                         file=path, row=0) from None
+    except (pd.errors.ParserError, ValueError) as exc:
+        m = _FIELDS.search(str(exc))
+        if m is None:
+            raise InputError(f"unreadable CSV file ({describe(exc)})", file=path) from None
+        expected, line, saw = (int(g) for g in m.groups())
+        row = sum(1 for x in _LINE_BREAK.split(body)[:line - 1] if x.strip())
+        raise InputError(f"line {h + 1 + line} has {saw} fields, expected {expected} like the rows before",
+                         file=path, row=row) from None
+    df.attrs["decimal"] = decimal
+    return df
+
+
+def _read_table(path: Path) -> tuple[pd.DataFrame, dict]:
+    """(table, file metadata) of a CSV or Parquet file; every failure is one InputError."""
+    kind = _check_file(path)
+    if kind == "parquet":
+        return _read_parquet(path)
+    try:
+        return _read_csv(path), {}
+    except OSError as exc:
+        raise InputError(f"cannot read the file ({exc.strerror or describe(exc)})", file=path) from None
+
+
+def read_table_header(path: str | os.PathLike) -> tuple[list[str], dict]:
+    """(column names, file metadata) of a log or labels file, read as :func:`read_log` reads it."""
+    path = Path(path)
+    df, meta = _read_table(path)
+    return [str(c) for c in df.columns], meta
+
+
+def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
+    """Column ``col`` as finite float64 numbers (T,), or an InputError naming the first bad row."""
+    s = df[col]
+    if s.dtype.kind in "biuf":
+        arr = s.to_numpy(dtype=np.float64)
+    elif s.dtype.kind in "mM":
+        raise InputError(f"expected numbers (seconds, radians, N*m), found a column of type {s.dtype}",
+                         file=path, column=col)
+    else:
+        s = s.astype(object)
+        num = _to_numbers(_decimal_points(s, df.attrs.get("decimal", ".")))
+        if num.dtype.kind not in "biuf":
+            raise InputError(f"expected real numbers, found values of type {num.dtype}", file=path, column=col)
+        bad = (num.isna() & s.notna()).to_numpy()
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise InputError(f"expected a number, found {one_line(repr(s.iloc[row]), 40)}{_decimal_hint(df, s.iloc[row])}",
+                             file=path, column=col, row=row)
+        arr = num.to_numpy(dtype=np.float64)
     finite = np.isfinite(arr)
     if not finite.all():
         row = int(np.flatnonzero(~finite)[0])
-        raise InputError(f"expected a finite number, found {arr[row]}", file=path, column=col, row=row)
+        found = "a missing value (empty or NaN)" if np.isnan(arr[row]) else arr[row]
+        raise InputError(f"expected a finite number, found {found}", file=path, column=col, row=row)
     return arr
 
 
-def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
-             joint_names: Sequence[str] | None = None, min_samples: int = MIN_SAMPLES) -> RobotLog:
-    """Read and check one log (Parquet or CSV) per CONTRACT section 1.
+def _to_numbers(s: pd.Series) -> pd.Series:
+    """pd.to_numeric with NaN for what is not a number and +-inf for integers beyond float64
+    (CSV cells of 400 digits arrive as Python ints, which pandas refuses with OverflowError)."""
+    try:
+        return pd.to_numeric(s, errors="coerce")
+    except OverflowError:
+        return pd.to_numeric(s.map(_float_or_inf), errors="coerce")
 
-    ``n_joints``/``joint_names`` come from the robot model when one is used; a log whose joint
-    count disagrees is refused. Rows are reported 0-based, as data rows (header excluded).
-    """
-    path = Path(path)
-    df, meta = _read_table(path)
-    cols = list(df.columns)
-    if "t" not in cols:
-        near = [c for c in cols if c.strip().lower() in ("t", "time", "timestamp", "time_s")]
-        hint = f" (found '{near[0]}'; rename it to 't')" if near else ""
-        raise InputError(f"required column 't' is missing{hint}", file=path, column="t")
+
+def _float_or_inf(v):
+    if isinstance(v, int) and not isinstance(v, bool):
+        try:
+            return float(v)
+        except OverflowError:
+            return np.inf if v > 0 else -np.inf
+    return v
+
+
+def _decimal_points(s: pd.Series, decimal: str) -> pd.Series:
+    """Text cells of a decimal-comma file with '.' as decimal mark; a cell that has a point
+    already is ambiguous there (2.500 may be a thousands mark) and becomes NaN (refused)."""
+    if decimal == ".":
+        return s
+    return s.map(lambda v: (np.nan if "." in v else v.replace(",", ".")) if isinstance(v, str) else v)
+
+
+def _decimal_hint(df: pd.DataFrame, cell) -> str:
+    if df.attrs.get("decimal") == "," and isinstance(cell, str) and "." in cell:
+        return " (the file uses decimal commas elsewhere)"
+    return ""
+
+
+# ---------------------------------------------------------------------------------------------
+# Logs
+# ---------------------------------------------------------------------------------------------
+
+def _missing_t(cols: list, path: Path) -> InputError:
+    near = [c for c in cols if str(c).strip().lower() in ("t", "time", "timestamp", "time_s")]
+    if near:
+        hint = f" (found '{near[0]}'; rename it to 't')"
+    elif cols and all(_is_number(c) for c in cols):
+        hint = "; the first line holds numbers: the file needs a header line such as 't,q_0,tau_0'"
+    else:
+        hint = f"; the header has {one_line(str([str(c) for c in cols[:8]]), 120)}"
+    return InputError(f"required column 't' is missing{hint}", file=path, column="t")
+
+
+def _is_number(text) -> bool:
+    try:
+        float(str(text).replace(",", "."))
+    except ValueError:
+        return False
+    return True
+
+
+def _joint_columns(cols: list, path: Path) -> tuple[int, dict[str, dict[int, str]]]:
+    """(n joints, {kind: {joint: column}}) of a log's columns, checked against CONTRACT section 1."""
     groups: dict[str, dict[int, str]] = {"q": {}, "dq": {}, "ddq": {}, "tau": {}}
     for c in cols:
-        m = _COL.match(str(c))
+        m = _COL.fullmatch(str(c))
         if m:
             groups[m.group(1)][int(m.group(2))] = c
-    unknown = [c for c in cols if c != "t" and not _COL.match(str(c))]
     if not groups["q"]:
-        extra = f"; unrecognised columns: {unknown[:5]}" if unknown else ""
+        unknown = [str(c) for c in cols if c != "t" and not _COL.fullmatch(str(c))]
+        extra = f"; unrecognised columns: {one_line(str(unknown[:5]), 120)}" if unknown else ""
         raise InputError(f"no joint position columns 'q_0'..'q_(n-1)' found{extra}", file=path, column="q_0")
     n = max(groups["q"]) + 1
     for j in range(n):
         if j not in groups["q"]:
             raise InputError(f"joint positions must be q_0..q_{n-1} without gaps", file=path, column=f"q_{j}")
-    for kind in ("tau",):
-        for j in range(n):
-            if j not in groups[kind]:
-                raise InputError(f"required column is missing (log has {n} joints from q_*)",
-                                 file=path, column=f"{kind}_{j}")
+    for j in range(n):
+        if j not in groups["tau"]:
+            raise InputError(f"required column is missing (log has {n} joints from q_*)",
+                             file=path, column=f"tau_{j}")
     for kind in ("q", "dq", "ddq", "tau"):
         extra = sorted(k for k in groups[kind] if k >= n)
         if extra:
@@ -162,6 +369,41 @@ def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
             missing = next(j for j in range(n) if j not in groups[kind])
             raise InputError(f"'{kind}' columns must be given for all {n} joints or none",
                              file=path, column=f"{kind}_{missing}")
+    return n, groups
+
+
+def _check_time(t: np.ndarray, path: Path) -> None:
+    """'t' strictly increasing, without a step longer than MAX_TIME_STEP_S (see there why)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        dt = np.diff(t)
+    if (dt <= 0).any():
+        row = int(np.flatnonzero(dt <= 0)[0]) + 1
+        raise InputError(f"'t' must be strictly increasing: t[{row}]={t[row]} after t[{row-1}]={t[row-1]}",
+                         file=path, column="t", row=row)
+    if (dt > MAX_TIME_STEP_S).any():
+        row = int(np.flatnonzero(dt > MAX_TIME_STEP_S)[0]) + 1
+        raise InputError(f"'t' jumps by {dt[row - 1]:.4g} s from t[{row-1}]={t[row-1]:.10g} to "
+                         f"t[{row}]={t[row]:.10g}: a pause longer than a day is a clock change (epoch "
+                         "seconds after a restart?) or separate recordings; fix the time stamps or "
+                         "give each recording as its own log file", file=path, column="t", row=row)
+
+
+def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
+             joint_names: Sequence[str] | None = None, min_samples: int = MIN_SAMPLES) -> RobotLog:
+    """Read and check one log (Parquet or CSV) per CONTRACT section 1.
+
+    ``n_joints``/``joint_names`` come from the robot model when one is used; a log whose joint
+    count disagrees is refused. Rows are reported 0-based, as data rows (header excluded).
+    CSV: UTF-8; the separator is the one of ',', ';' or tab in the header line, and with ';' or
+    tab the decimal mark may be ',' (see ``_read_csv``). 't' is in seconds, strictly increasing,
+    with no step longer than a day (``MAX_TIME_STEP_S``).
+    """
+    path = Path(path)
+    df, meta = _read_table(path)
+    cols = list(df.columns)
+    if "t" not in cols:
+        raise _missing_t(cols, path)
+    n, groups = _joint_columns(cols, path)
     names = list(joint_names) if joint_names is not None else meta.get("joint_names")
     if meta.get("joint_names") is not None and len(meta["joint_names"]) != n:
         raise InputError(f"metadata joint_names lists {len(meta['joint_names'])} joints but the log has {n}",
@@ -171,13 +413,10 @@ def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
                          file=path, column=f"q_{min(n, n_joints)}" if n < n_joints else f"q_{n_joints}")
     T = len(df)
     if T < min_samples:
-        raise InputError(f"too few samples: {T} rows, at least {min_samples} needed", file=path, row=T)
+        what = "no data rows (a header only)" if T == 0 else f"{T} rows"
+        raise InputError(f"too few samples: {what}, at least {min_samples} needed", file=path, row=T)
     t = _numeric_column(df, "t", path)
-    dt = np.diff(t)
-    if (dt <= 0).any():
-        row = int(np.flatnonzero(dt <= 0)[0]) + 1
-        raise InputError(f"'t' must be strictly increasing: t[{row}]={t[row]} after t[{row-1}]={t[row-1]}",
-                         file=path, column="t", row=row)
+    _check_time(t, path)
     arrays = {}
     for kind in ("q", "dq", "ddq", "tau"):
         if groups[kind]:
@@ -190,18 +429,12 @@ def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
                     ddq=arrays["ddq"], metadata=meta)
 
 
-def read_labels(path: str | os.PathLike, *, t: np.ndarray | None = None, atol: float = 1e-6) -> pd.DataFrame:
-    """Read a ground-truth labels file: ``t`` and any of ``disturbed`` (0/1/-1), ``mode`` (int).
+# ---------------------------------------------------------------------------------------------
+# Labels
+# ---------------------------------------------------------------------------------------------
 
-    When ``t`` (training times) is given, labels are matched to it by time; every training time
-    must have a label within ``atol`` seconds.
-    """
-    path = Path(path)
-    df, _ = _read_table(path)
-    if "t" not in df.columns:
-        raise InputError("required column 't' is missing", file=path, column="t")
-    if not ({"disturbed", "mode"} & set(df.columns)):
-        raise InputError("labels need a 'disturbed' or a 'mode' column", file=path, column="disturbed")
+def _label_columns(df: pd.DataFrame, path: Path) -> pd.DataFrame:
+    """``t``, ``disturbed`` (-1/0/1) and ``mode`` (int) of a labels table, checked."""
     out = pd.DataFrame({"t": _numeric_column(df, "t", path)})
     if "disturbed" in df.columns:
         d = _numeric_column(df, "disturbed", path)
@@ -212,11 +445,30 @@ def read_labels(path: str | os.PathLike, *, t: np.ndarray | None = None, atol: f
         out["disturbed"] = d.astype(int)
     if "mode" in df.columns:
         m = _numeric_column(df, "mode", path)
-        bad = m != np.round(m)
+        bad = (m != np.round(m)) | (np.abs(m) >= 2.0 ** 31)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
             raise InputError(f"expected an integer, found {m[row]}", file=path, column="mode", row=row)
         out["mode"] = m.astype(int)
+    return out
+
+
+def read_labels(path: str | os.PathLike, *, t: np.ndarray | None = None, atol: float = 1e-6) -> pd.DataFrame:
+    """Read a ground-truth labels file: ``t`` and any of ``disturbed`` (0/1/-1), ``mode`` (int).
+
+    When ``t`` (training times, (T,) s) is given, labels are matched to it by time; every
+    training time must have a label within ``atol`` seconds. The file is read as
+    :func:`read_log` reads a log (same CSV rules).
+    """
+    path = Path(path)
+    df, _ = _read_table(path)
+    if "t" not in df.columns:
+        raise _missing_t(list(df.columns), path)
+    if not ({"disturbed", "mode"} & set(df.columns)):
+        raise InputError("labels need a 'disturbed' or a 'mode' column", file=path, column="disturbed")
+    if len(df) == 0:
+        raise InputError("no label rows (the file has a header only)", file=path, row=0)
+    out = _label_columns(df, path)
     if t is not None:
         t = np.asarray(t, dtype=np.float64)
         order = np.argsort(out["t"].to_numpy())

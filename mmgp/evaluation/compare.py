@@ -30,12 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from .metrics import normalised_mse
+from ..threads import limit_threads
 from ..gp.exact import ExactGP
-from ..gp.hyper import default_hyper
+from ..gp.linalg import resolve_device
+from ..gp.hyper import default_hyper, optimise_hyper
+from ..gp.objectives import leave_block_out
 from ..data.logs import RobotLog
 from ..data.outputs import atomic_write_bytes, jsonable
 from ..data.differentiation import SavitzkyGolay
-from ..data.folds import time_block_folds
+from ..data.folds import spread_subset, time_block_folds
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
@@ -54,30 +57,17 @@ def default_gap(t: np.ndarray) -> int:
     return int(SavitzkyGolay().window_samples(dt, len(t)))
 
 
-def _train_subset(idx: np.ndarray, max_train: int, rng: np.random.Generator) -> np.ndarray:
-    """Evenly spaced picks (with a random offset): random picks put near-copies side by side,
-    and their correlated derivative noise makes the LOO objective take noise for signal."""
-    if len(idx) <= max_train:
-        return idx
-    step = len(idx) / max_train
-    pos = np.floor(rng.uniform(0, step) + step * np.arange(max_train)).astype(int)
-    return idx[np.minimum(pos, len(idx) - 1)]
-
-
 def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: str, block_s: float) -> ExactGP:
     """ExactGP on X (N, d) -> Y (N, m) sampled at times t (N,) s, hyperparameters chosen by
     ``hyper_fit``: "loo" (ExactGP's own leave-one-out) or "block" (leave-time-block-out)."""
     if hyper_fit == "loo":
         return ExactGP(**opts).fit(X, Y)
-    from ..gp.windowed import optimise_hyper_windowed
-
     k = min(len(X), int(opts.get("max_fit_points", 1000)))
     fit_idx = np.unique(np.linspace(0, len(X) - 1, k).round().astype(int))
     # Condition once on the fitting subset for its standardisation; tune in those units.
     gp = ExactGP(**opts).fit(X[fit_idx], Y[fit_idx], hyper=default_hyper(X.shape[1], Y.shape[1]), optimise=False)
-    hyper = optimise_hyper_windowed(gp.Xs_, gp.Ys_, t[fit_idx], 0.5 * block_s, gp.hyper_,
-                                    max_iter=int(opts.get("max_iter", 60)),
-                                    noise_floor=float(opts.get("noise_floor", 1e-6)))
+    hyper, _ = optimise_hyper(gp.Xs_, gp.Ys_, gp.hyper_, objective=leave_block_out(t[fit_idx], block_s),
+                              max_iter=int(opts.get("max_iter", 60)), noise_floor=float(opts.get("noise_floor", 1e-6)))
     return ExactGP(**opts).fit(X, Y, hyper=hyper, optimise=False)
 
 
@@ -96,7 +86,7 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
     objective costs O(fit points^3) per iteration, the conditioning on ``max_train`` samples is
     done once per fold).
     ``hyper_fit``: how hyperparameters are chosen on the training samples: "block" (default;
-    leave-time-block-out log predictive, blocks of ``block_s`` s, :func:`mmgp.em.optimise_hyper_windowed`)
+    leave-time-block-out log predictive, blocks of ``block_s`` s, :func:`mmgp.gp.objectives.leave_block_out`)
     or "loo" (plain leave-one-out, :class:`mmgp.gp.ExactGP`). On densely logged trajectories plain
     LOO predicts each sample from its near-copies in time, picks a noise level far below the
     real one and extrapolates wildly into the unseen states of a held-out block.
@@ -113,10 +103,19 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
     * ``tau_std`` (n,) N*m; ``gp_improves_rigid_body`` (n,) bools: rigid_body_gp < rigid_body;
       ``timings`` (s).
     """
+    # Each fold is small factorisations (hyperparameters on a few hundred samples, conditioning
+    # on max_train): one thread (mmgp.threads); on the shared 2-core machine two threads made a
+    # real-Panda fold take 274 s instead of ~30 s.
+    with limit_threads(1):
+        return _compare(log, robot, n_folds=n_folds, gap=gap, max_train=max_train, seed=seed,
+                        gp_options=gp_options, hyper_fit=hyper_fit, block_s=block_s, progress=progress)
+
+
+def _compare(log: RobotLog, robot, *, n_folds, gap, max_train, seed, gp_options, hyper_fit, block_s,
+             progress) -> dict:
     if log.dq is None or log.ddq is None:
         raise ValueError("log has no dq/ddq: run mmgp.signals.complete_derivatives() first")
     t0 = time.perf_counter()
-    say = progress or (lambda msg: None)
     T, n = log.tau.shape
     if robot is not None and robot.n_joints != n:
         raise ValueError(f"robot has {robot.n_joints} joints, log has {n}")
@@ -128,16 +127,27 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
     if max_train < 2:
         raise ValueError("max_train must be at least 2")
     folds = time_block_folds(T, n_folds, gap)
-    opts = {"ard": True, "objective": "loo", "max_fit_points": min(400, max_train), "max_iter": 60,
-            "device": "cpu"}
+    opts = {"ard": True, "objective": "loo", "max_fit_points": min(400, max_train), "max_iter": 60, "device": None}
     opts.update(gp_options or {})
     opts.setdefault("seed", seed)
-    rng = np.random.default_rng(seed)
-
-    X = np.concatenate([log.q, log.dq, log.ddq], axis=1)
+    opts["device"] = str(resolve_device(opts["device"]))
     tau = np.asarray(log.tau, dtype=np.float64)
-    methods = list(METHODS) if robot is not None else ["gp"]
     tau_rbd = robot.rnea(log.q, log.dq, log.ddq) if robot is not None else None
+    pred, fold_info, t_fit = _fold_predictions(log, tau, tau_rbd, folds, gap=gap, max_train=max_train, seed=seed,
+                                               opts=opts, hyper_fit=hyper_fit, block_s=block_s,
+                                               say=progress or (lambda m: None))
+    out = _result(log, robot, tau, pred, folds, n_folds=n_folds, gap=gap, max_train=max_train, seed=seed)
+    out.update(folds=fold_info, gp_options=dict(opts), hyper_fit=hyper_fit, block_s=float(block_s),
+               timings={"fit_predict_s": t_fit, "total_s": time.perf_counter() - t0})
+    return out
+
+
+def _fold_predictions(log: RobotLog, tau, tau_rbd, folds, *, gap, max_train, seed, opts, hyper_fit, block_s, say):
+    """Out-of-fold predictions {method: (T, n)}, per-fold records and the fit time (s)."""
+    T, n = tau.shape
+    X = np.concatenate([log.q, log.dq, log.ddq], axis=1)
+    rng = np.random.default_rng(seed)
+    methods = list(METHODS) if tau_rbd is not None else ["gp"]
     pred = {m: np.full_like(tau, np.nan) for m in methods}
     if tau_rbd is not None:
         pred["rigid_body"] = tau_rbd.copy()
@@ -147,7 +157,7 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
         if len(train) < 2:
             raise ValueError(f"fold {k}: only {len(train)} training samples left with gap={gap}; "
                              "use fewer folds or a smaller gap")
-        sub = _train_subset(train, max_train, rng)
+        sub = spread_subset(train, max_train, rng)
         fold_info.append({"test": [int(test[0]), int(test[-1]) + 1], "n_train_available": int(len(train)),
                           "n_train": int(len(sub))})
         t1 = time.perf_counter()
@@ -157,9 +167,15 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
             gp_r = _fit_gp(X[sub], tau[sub] - tau_rbd[sub], log.t[sub], opts, hyper_fit, block_s)
             pred["rigid_body_gp"][test] = tau_rbd[test] + gp_r.predict(X[test], return_std=False).reshape(len(test), n)
         t_fit += time.perf_counter() - t1
-        say(f"fold {k + 1}/{n_folds}: test [{test[0]}, {test[-1] + 1}), {len(sub)} of {len(train)} training "
+        say(f"fold {k + 1}/{len(folds)}: test [{test[0]}, {test[-1] + 1}), {len(sub)} of {len(train)} training "
             f"samples ({time.perf_counter() - t1:.1f} s)")
+    return pred, fold_info, t_fit
 
+
+def _result(log: RobotLog, robot, tau, pred, folds, *, n_folds, gap, max_train, seed) -> dict:
+    """The figures of :func:`compare` from the out-of-fold predictions."""
+    n = tau.shape[1]
+    methods = list(pred)
     var = tau.var(0)
     var = np.where(var > 0, var, 1.0)
     nmse = {m: normalised_mse(tau, pred[m]) for m in methods}
@@ -172,26 +188,14 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
     joint_names = (log.joint_names or (robot.joint_names if robot is not None else None)
                    or [f"joint_{j}" for j in range(n)])
     out = {
-        "log": str(log.path),
-        "robot": robot_id,
-        "joint_names": list(joint_names),
-        "methods": methods,
-        "n_samples": int(T),
-        "n_folds": int(n_folds),
-        "gap": int(gap),
-        "gap_s": gap * dt,
-        "max_train": int(max_train),
-        "seed": int(seed),
+        "log": str(log.path), "robot": robot_id, "joint_names": list(joint_names), "methods": methods,
+        "n_samples": int(len(tau)), "n_folds": int(n_folds), "gap": int(gap), "gap_s": gap * dt,
+        "max_train": int(max_train), "seed": int(seed),
         "derivatives_estimated": {"dq": bool(log.dq_estimated), "ddq": bool(log.ddq_estimated)},
-        "folds": fold_info,
         "tau_std": np.sqrt(tau.var(0)).tolist(),
         "nmse": {m: v.tolist() for m, v in nmse.items()},
         "rmse": {m: v.tolist() for m, v in rmse.items()},
         "nmse_per_fold": {m: v.tolist() for m, v in per_fold.items()},
-        "gp_options": {k: v for k, v in opts.items()},
-        "hyper_fit": hyper_fit,
-        "block_s": float(block_s),
-        "timings": {"fit_predict_s": t_fit, "total_s": time.perf_counter() - t0},
     }
     if robot is not None:
         out["gp_improves_rigid_body"] = [bool(a < b) for a, b in zip(nmse["rigid_body_gp"], nmse["rigid_body"])]
@@ -218,8 +222,9 @@ def format_compare(result: dict) -> str:
 
 
 def write_compare(result: dict, out_dir) -> list[Path]:
-    """Write ``out_dir/compare.json`` (the result) and ``out_dir/compare.png`` (grouped bars of
-    normalised MSE per joint, log scale, dashed line at 1 = predicting the mean). Returns the paths."""
+    """Write ``out_dir/compare.json`` (the result), ``out_dir/compare.png`` (grouped bars of
+    normalised MSE per joint, log scale, dashed line at 1 = predicting the mean) and
+    ``out_dir/report.html`` (both on one self-contained page). Returns the paths."""
     import io as _io
 
     import matplotlib
@@ -258,4 +263,6 @@ def write_compare(result: dict, out_dir) -> list[Path]:
     plt.close(fig)
     png = out_dir / "compare.png"
     atomic_write_bytes(png, buf.getvalue())
-    return [js, png]
+    from .reports import write_compare_report
+
+    return [js, png, write_compare_report(out_dir, result)]

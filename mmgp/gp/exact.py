@@ -13,20 +13,27 @@ The log-variance term matters: without it (as in the source dissertation) the ob
 inflating the predictive variance. The log marginal likelihood is available as an alternative.
 
 Fitting cost: L-BFGS-B (scipy) on hand-derived gradients (one K^-1 and one (N, N) product per
-evaluation, see ``_value_and_grad``), first on a small coarse subset, then on the fitting subset.
-On 2,000 real Barrett WAM samples (7 outputs, 21 inputs) this fits several times faster than
-scikit-learn's GaussianProcessRegressor at lower held-out error (benchmarks/bench_gp_speed.py).
-For more than a few thousand samples use ``mmgp.gp.sparse.make_gp`` (SGPR above 3,000).
+evaluation, see :func:`mmgp.gp.hyper.rbf_value_and_grad`), first on a small coarse subset, then on
+the fitting subset. On 2,000 real Barrett WAM samples (7 outputs, 21 inputs) this fits several
+times faster than scikit-learn's GaussianProcessRegressor at lower held-out error
+(benchmarks/bench_gp_speed.py). ``mmgp.gp.sparse.make_gp`` picks this GP or SGPR by size and memory.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
+from sklearn.base import BaseEstimator
+from sklearn.utils.validation import check_is_fitted
 
 from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets
 from .kernels import rbf_kernel
-from .linalg import DTYPE, LOG_2PI, inverse_from_cholesky, resolve_device, robust_cholesky
+from ..threads import threads_for_rows
+from .linalg import DTYPE, LOG_2PI, GPNumericalError, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
 from .objectives import loo_from_inverse
+
+#: kernel matrices of all outputs together up to this many bytes are factorised as one batch
+#: (m, N, N) (fast for the EM's small supports); larger ones one output at a time
+BATCHED_BYTES = 2 ** 28
 
 
 def check_xy(X, Y) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -41,17 +48,70 @@ def check_xy(X, Y) -> tuple[np.ndarray, np.ndarray, bool]:
     return X, Y, vector
 
 
-def prepare_fit(est, X, Y) -> tuple[np.ndarray, np.ndarray]:
-    """Start of every GP's fit: checked float64 arrays; sets ``est``'s ``_vector_output``,
-    ``dev_`` (from ``est.device``) and the input/output standardisers."""
-    X, Y, est._vector_output = check_xy(X, Y)
-    est.dev_ = resolve_device(est.device)
-    est.x_scaler_ = Standardiser().fit(X)
-    est.y_scaler_ = Standardiser().fit(Y)
-    return X, Y
+class StandardisedRBFGP(BaseEstimator):
+    """What the exact and the sparse RBF GP share: settings, standardisation, the hyperparameter
+    procedure (:func:`mmgp.gp.hyper.fit_hyper_subsets`) and the conversions to data units.
+
+    Subclasses implement ``_condition``, ``predict`` and ``loo_predictive``.
+    """
+
+    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
+                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
+                 coarse_fit_points: int = 300, independent_outputs: bool = False):
+        self.ard = ard
+        self.objective = objective
+        self.max_fit_points = max_fit_points
+        self.max_iter = max_iter
+        self.noise_floor = noise_floor
+        self.device = device
+        self.seed = seed
+        self.coarse_fit_points = coarse_fit_points
+        self.independent_outputs = independent_outputs
+
+    def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
+        """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
+        ``hyper_`` (given, default or optimised) and ``objective_value_``."""
+        X, Y, self._vector_output = check_xy(X, Y)
+        self.dev_ = resolve_device(self.device)
+        self.x_scaler_ = Standardiser().fit(X)
+        self.y_scaler_ = Standardiser().fit(Y)
+        Xs = torch.as_tensor(self.x_scaler_.transform(X), dtype=DTYPE, device=self.dev_)
+        Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
+        init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
+        self.objective_value_ = float("nan")
+        if optimise:
+            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
+        self.hyper_ = init
+        self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
+        self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
+        return X, Y, Xs, Ys
+
+    def _query(self, X) -> torch.Tensor:
+        check_is_fitted(self, "hyper_")
+        return torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE,
+                               device=self.dev_)
+
+    def _data_units(self, mean_s: torch.Tensor, var_s: torch.Tensor | None):
+        """Standardised mean and variance (M, m) -> data-unit mean and std, shaped like the fit's Y."""
+        mean = mean_s.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
+        out = (lambda a: a[:, 0]) if self._vector_output else (lambda a: a)
+        if var_s is None:
+            return out(mean)
+        return out(mean), out(np.sqrt(var_s.cpu().numpy()) * self.y_scaler_.scale_)
+
+    def loo_log_predictive(self) -> float:
+        """Sum over samples and outputs of the LOO log predictive density, in data units."""
+        mean, std = self.loo_predictive()
+        Y = self._training_outputs()
+        if self._vector_output:
+            mean, std = mean[:, None], std[:, None]
+        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+
+    def _training_outputs(self) -> np.ndarray:
+        return self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
 
 
-class ExactGP:
+class ExactGP(StandardisedRBFGP):
     """Exact GP regression with an RBF kernel, one independent GP per output column.
 
     Parameters
@@ -68,56 +128,70 @@ class ExactGP:
         cost (Barrett WAM, 21 inputs: same held-out error as 60 full iterations, ~3x faster).
         0 disables it.
     noise_floor : smallest noise variance, as a fraction of each output's variance.
-    device : torch device ("cpu", "cuda", "auto").
+    independent_outputs : one optimiser run per output (see
+        :func:`mmgp.gp.hyper.optimise_hyper`); default False, one run over all outputs.
+    device : torch device ("cpu", "cuda", "auto"); None (default): the block's default
+        (:func:`mmgp.gp.linalg.default_device`), "cpu" outside one.
+
+    Memory: while the kernel matrices of all outputs take at most :data:`BATCHED_BYTES` they are
+    factorised together (m, N, N); larger fits keep one output's (N, N) factor at a time, made
+    when first predicted (``per_output_``), so an exact GP on 10^4+ samples needs O(N^2), not
+    O(m N^2), memory, and a fit that is only saved never pays the O(N^3).
 
     Learned: ``hyper_`` (standardised units), ``lengthscale_`` (m, d) and ``noise_std_`` (m,) in
-    data units, ``objective_value_`` (per-sample objective on the fitting subset).
+    data units, ``objective_value_`` (per-sample objective on the fitting subset), ``per_output_``.
     """
-
-    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
-                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = "cpu", seed: int = 0,
-                 coarse_fit_points: int = 300):
-        self.coarse_fit_points = coarse_fit_points
-        self.ard = ard
-        self.objective = objective
-        self.max_fit_points = max_fit_points
-        self.max_iter = max_iter
-        self.noise_floor = noise_floor
-        self.device = device
-        self.seed = seed
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "ExactGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
-        X, Y = prepare_fit(self, X, Y)
-        Xs = torch.as_tensor(self.x_scaler_.transform(X), dtype=DTYPE, device=self.dev_)
-        Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
-        init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
-        self.objective_value_ = float("nan")
-        if optimise:
-            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
-        self.hyper_ = init
+        _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
         self._condition(Xs, Ys)
         return self
 
     def _condition(self, Xs: torch.Tensor, Ys: torch.Tensor) -> None:
+        self.Xs_, self.Ys_ = Xs, Ys
+        N, m = Ys.shape
+        self.per_output_ = m * N * N * 8 > BATCHED_BYTES
+        if self.per_output_:
+            # One output at a time, factorised when first predicted: memory O(N^2) instead of
+            # O(m N^2), and a model that is only saved (training) never pays the O(N^3).
+            if not exact_fits(N, self.dev_):
+                raise GPNumericalError(
+                    f"an exact GP on {N} samples needs {3 * N * N * 8 / 2 ** 30:.1f} GiB on {self.dev_}, more "
+                    "than is free: use the sparse GP (mmgp.gp.sparse.make_gp)")
+            self.L_, self.jitter_ = None, 0.0
+            self._alpha = [None] * m
+            return
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
-        K = rbf_kernel(Xs, Xs, ls, sf) + sn[:, None, None] * torch.eye(Xs.shape[0], dtype=DTYPE, device=self.dev_)
-        self.L_, self.jitter_ = robust_cholesky(K)
-        self.alpha_ = torch.cholesky_solve(Ys.T.unsqueeze(-1), self.L_).squeeze(-1)  # (m, N)
-        self.Xs_ = Xs
-        self.Ys_ = Ys
-        self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
-        self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
+        K = rbf_kernel(Xs, Xs, ls, sf) + sn[:, None, None] * torch.eye(N, dtype=DTYPE, device=self.dev_)
+        with threads_for_rows(N, self.dev_):
+            self.L_, self.jitter_ = robust_cholesky(K)
+            self.alpha_ = torch.cholesky_solve(Ys.T.unsqueeze(-1), self.L_).squeeze(-1)  # (m, N)
 
-    def _out(self, a: np.ndarray) -> np.ndarray:
-        return a[:, 0] if self._vector_output else a
+    def _factor(self, j: int) -> torch.Tensor:
+        """Output j's Cholesky factor (N, N) (per-output mode); caches its weights K^-1 y."""
+        ls, sf, sn = self.hyper_.to_torch(self.dev_)
+        with threads_for_rows(self.Xs_.shape[0], self.dev_):
+            K = rbf_kernel(self.Xs_, self.Xs_, ls[j:j + 1], sf[j:j + 1])[0]
+            K.diagonal().add_(sn[j])
+            L, jitter = robust_cholesky(K)
+            del K
+            self._alpha[j] = torch.cholesky_solve(self.Ys_[:, j:j + 1], L)[:, 0]
+        self.jitter_ = max(self.jitter_, jitter)
+        return L
 
     def predict(self, X: np.ndarray, *, include_noise: bool = False, return_std: bool = True):
         """Posterior mean (M, m) and std (M, m) at X (M, d), in data units.
 
         ``include_noise`` adds the observation noise (predictive of a new measurement).
         """
-        Xq = torch.as_tensor(self.x_scaler_.transform(np.asarray(X, dtype=np.float64)), dtype=DTYPE, device=self.dev_)
+        Xq = self._query(X)
+        with threads_for_rows(self.Xs_.shape[0], self.dev_):
+            if self.per_output_:
+                return self._predict_per_output(Xq, include_noise, return_std)
+            return self._predict_batched(Xq, include_noise, return_std)
+
+    def _predict_batched(self, Xq: torch.Tensor, include_noise: bool, return_std: bool):
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         mean_s, var_s = [], []
         # chunks keep each (m, N, chunk) buffer near 32 MB: prediction memory stays O(N m)
@@ -131,24 +205,39 @@ class ExactGP:
                 if include_noise:
                     var = var + sn[:, None]
                 var_s.append(var.T)
-        mean = torch.cat(mean_s).cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        if not return_std:
-            return self._out(mean)
-        std = np.sqrt(torch.cat(var_s).cpu().numpy()) * self.y_scaler_.scale_
-        return self._out(mean), self._out(std)
+        return self._data_units(torch.cat(mean_s), torch.cat(var_s) if return_std else None)
+
+    def _predict_per_output(self, Xq: torch.Tensor, include_noise: bool, return_std: bool):
+        ls, sf, sn = self.hyper_.to_torch(self.dev_)
+        N = self.Xs_.shape[0]
+        chunk_size = max(64, int(4e6 // N))
+        means, vars_ = [], []
+        for j in range(len(self._alpha)):
+            L = self._factor(j) if (return_std or self._alpha[j] is None) else None
+            m_j, v_j = [], []
+            for chunk in torch.split(Xq, chunk_size):
+                Ks = rbf_kernel(self.Xs_, chunk, ls[j:j + 1], sf[j:j + 1])[0]          # (N, Q)
+                m_j.append(Ks.T @ self._alpha[j])
+                if return_std:
+                    V = torch.linalg.solve_triangular(L, Ks, upper=False)
+                    v_j.append((sf[j] - (V * V).sum(0)).clamp_min(1e-12) + (sn[j] if include_noise else 0.0))
+            del L
+            means.append(torch.cat(m_j))
+            if return_std:
+                vars_.append(torch.cat(v_j))
+        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1) if return_std else None)
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """Leave-one-out predictive mean and std (N, m) of the training outputs (closed form)."""
-        Kinv = inverse_from_cholesky(self.L_)
-        mu, var = loo_from_inverse(Kinv, self.Ys_.T)
-        mean = mu.T.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        std = np.sqrt(var.T.cpu().numpy()) * self.y_scaler_.scale_
-        return self._out(mean), self._out(std)
-
-    def loo_log_predictive(self) -> float:
-        """Sum over samples and outputs of the LOO log predictive density, in data units."""
-        mean, std = self.loo_predictive()
-        Y = self.Ys_.T.cpu().numpy().T * self.y_scaler_.scale_ + self.y_scaler_.mean_
-        if self._vector_output:
-            mean, std = mean[:, None], std[:, None]
-        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+        check_is_fitted(self, "hyper_")
+        if not self.per_output_:
+            mu, var = loo_from_inverse(inverse_from_cholesky(self.L_), self.Ys_.T)
+            return self._data_units(mu.T, var.T)
+        mus, vars_ = [], []
+        for j in range(len(self._alpha)):
+            Kinv = inverse_from_cholesky(self._factor(j))
+            mu, var = loo_from_inverse(Kinv[None], self.Ys_[:, j][None])
+            del Kinv
+            mus.append(mu[0])
+            vars_.append(var[0])
+        return self._data_units(torch.stack(mus, 1), torch.stack(vars_, 1))

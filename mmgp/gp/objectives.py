@@ -1,10 +1,35 @@
-"""Hyperparameter objectives: leave-one-out log predictive, log marginal likelihood and (in
-mmgp.gp.windowed) leave-block-out; each a function of the kernel matrix and the targets."""
+"""Hyperparameter objectives, each a function of the kernel matrix and the targets.
+
+All are log densities to be *maximised*, batched over outputs: K (m, N, N) including the noise,
+y (m, N), value (m,). An :class:`Objective` bundles
+
+* ``value(K, y)``: written with differentiable torch operations, so autograd gives its gradient;
+* ``value_and_dK(L, y)`` (where a closed form exists): the value and ``G = dF/dK`` (m, N, N) from
+  the Cholesky factor ``L`` of K. A caller then only needs ``dK/dtheta`` (hand-written or by
+  autograd) to finish the chain rule, which avoids backpropagating through the factorisation.
+
+Objectives: the leave-one-out log predictive (:data:`LOO`, Rasmussen & Williams, GPML 5.4.2), the
+log marginal likelihood (:data:`MARGINAL`) and the leave-time-block-out log predictive
+(:func:`leave_block_out`, for densely logged samples whose neighbours are near-copies).
+"""
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
 import torch
 
 from .linalg import LOG_2PI, inverse_from_cholesky, robust_cholesky
+
+
+@dataclass(frozen=True)
+class Objective:
+    """A named objective: ``value(K, y) -> (m,)``, optionally ``value_and_dK(L, y) -> (F, G)``."""
+
+    name: str
+    value: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    value_and_dK: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None
 
 
 def loo_from_inverse(Kinv: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -35,50 +60,80 @@ def log_marginal_likelihood(K: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return -0.5 * (y * alpha).sum(-1) - 0.5 * logdet - 0.5 * N * LOG_2PI
 
 
-def _value_and_grad(X: torch.Tensor, y: torch.Tensor, log_ls: torch.Tensor, log_sf: torch.Tensor,
-                    log_sn: torch.Tensor, noise_floor: float, objective: str):
-    """Objective per output and its analytic gradient w.r.t. the log-hyperparameters.
+def loo_value_and_dK(L: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """LOO log predictive (m,) and its gradient w.r.t. K, G (m, N, N), from L = chol(K).
 
-    X (N, d), y (m, N), log_ls (m, d) or (m, 1), log_sf (m,), log_sn (m,) with noise variance
-    exp(log_sn) + noise_floor. Returns F (m,), dF/dlog_ls, dF/dlog_sf, dF/dlog_sn.
-
-    Hand-written rather than autograd: the gradient w.r.t. K is one (N, N) matrix G
-    (LOO: G = -P diag(a) P - sym(P b alpha^T), GPML eq. 5.13 rewritten; marginal:
-    G = (alpha alpha^T - P) / 2, with P = K^-1), and every kernel derivative is then an O(N^2 d)
-    contraction with G * K. Backpropagating through cholesky_inverse instead costs several
-    more O(N^3) products per evaluation and keeps more (m, N, N) buffers alive.
+    With P = K^-1, c = diag P, alpha = P y: F = sum_i 0.5 log c_i - alpha_i^2 / (2 c_i) - 0.5 log 2 pi,
+    and G = -P diag(a) P - sym(P b alpha^T) with a = dF/dc, b = dF/dalpha (GPML eq. 5.13 rewritten).
     """
-    N = X.shape[0]
-    ls = torch.exp(log_ls)
-    Z = X.unsqueeze(0) / ls.unsqueeze(1)                                 # (m, N, d)
-    zz = (Z * Z).sum(-1)
-    Kf = zz.unsqueeze(-1) + zz.unsqueeze(-2) - 2.0 * Z @ Z.transpose(-1, -2)
-    Kf = torch.exp_(Kf.clamp_min_(0.0).mul_(-0.5)).mul_(torch.exp(log_sf)[:, None, None])
-    K = Kf.clone()
-    K.diagonal(dim1=-2, dim2=-1).add_((torch.exp(log_sn) + noise_floor)[:, None])
-    L, _ = robust_cholesky(K)
-    del K
+    N = y.shape[-1]
     P = inverse_from_cholesky(L)
     alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
-    if objective == "loo":
-        c = P.diagonal(dim1=-2, dim2=-1)
-        F = (0.5 * torch.log(c) - 0.5 * alpha ** 2 / c).sum(-1) - 0.5 * N * LOG_2PI
-        a = 0.5 / c + 0.5 * alpha ** 2 / c ** 2              # dF/d[P]_ii
-        b = -alpha / c                                       # dF/dalpha_i
-        Pb = P @ b.unsqueeze(-1)
-        G = (P * a.unsqueeze(-2)) @ P
-        G.neg_()
-        G -= 0.5 * (Pb @ alpha.unsqueeze(-2) + alpha.unsqueeze(-1) @ Pb.transpose(-1, -2))
-    else:
-        F = (-0.5 * (y * alpha).sum(-1) - torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
-             - 0.5 * N * LOG_2PI)
-        G = P.mul_(-0.5)
-        G += 0.5 * alpha.unsqueeze(-1) * alpha.unsqueeze(-2)
-    g_sn = G.diagonal(dim1=-2, dim2=-1).sum(-1) * torch.exp(log_sn)
-    W = G.mul_(Kf)                                           # G is symmetric, so rows = columns
-    g_sf = W.sum((-1, -2))
-    rs = W.sum(-1)
-    g_ls = 2.0 * (Z * Z * rs.unsqueeze(-1)).sum(1) - 2.0 * (Z * (W @ Z)).sum(1)
-    if log_ls.shape[-1] == 1 and X.shape[1] != 1:
-        g_ls = g_ls.sum(-1, keepdim=True)
-    return F, g_ls, g_sf, g_sn
+    c = P.diagonal(dim1=-2, dim2=-1)
+    F = (0.5 * torch.log(c) - 0.5 * alpha ** 2 / c).sum(-1) - 0.5 * N * LOG_2PI
+    a = 0.5 / c + 0.5 * alpha ** 2 / c ** 2              # dF/d[P]_ii
+    b = -alpha / c                                       # dF/dalpha_i
+    Pb = P @ b.unsqueeze(-1)
+    G = (P * a.unsqueeze(-2)) @ P
+    G.neg_()
+    G -= 0.5 * (Pb @ alpha.unsqueeze(-2) + alpha.unsqueeze(-1) @ Pb.transpose(-1, -2))
+    return F, G
+
+
+def marginal_value_and_dK(L: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Log marginal likelihood (m,) and G = dF/dK = (alpha alpha^T - K^-1) / 2 (m, N, N), from L = chol(K)."""
+    N = y.shape[-1]
+    P = inverse_from_cholesky(L)
+    alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
+    F = -0.5 * (y * alpha).sum(-1) - torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1) - 0.5 * N * LOG_2PI
+    G = P.mul_(-0.5)
+    G += 0.5 * alpha.unsqueeze(-1) * alpha.unsqueeze(-2)
+    return F, G
+
+
+def block_loo_log_predictive(K: torch.Tensor, y: torch.Tensor, idx: np.ndarray, valid: np.ndarray) -> torch.Tensor:
+    """Sum over samples of log p(y_i | all samples outside i's block), per output (m,).
+
+    Exact leave-block-out: for block W, y_W | rest ~ N(y_W - P_WW^-1 [P y]_W, P_WW^-1), P = K^-1;
+    each sample contributes its marginal. K (m, N, N) incl. noise, y (m, N); ``idx`` (n_blocks, B)
+    member indices padded with 0 and ``valid`` (n_blocks, B) marking real members.
+    """
+    L, _ = robust_cholesky(K)
+    P = torch.cholesky_inverse(L)
+    alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
+    it = torch.as_tensor(idx, device=K.device)
+    vt = torch.as_tensor(valid, dtype=K.dtype, device=K.device)
+    B = idx.shape[1]
+    mask2 = vt[:, :, None] * vt[:, None, :]
+    eye = torch.eye(B, dtype=K.dtype, device=K.device)
+    Pbb = P[:, it[:, :, None], it[:, None, :]] * mask2 + eye * (1 - mask2)    # (m, nb, B, B)
+    Lb = torch.linalg.cholesky(Pbb)
+    C = torch.cholesky_inverse(Lb)                                            # P_BB^-1
+    r = (C @ (alpha[:, it] * vt).unsqueeze(-1)).squeeze(-1)                  # y_B - mean_B
+    var = C.diagonal(dim1=-2, dim2=-1)
+    ll = -0.5 * (LOG_2PI + torch.log(var) + r ** 2 / var)
+    return (ll * vt).sum((-1, -2))
+
+
+LOO = Objective("loo", loo_log_predictive, loo_value_and_dK)
+MARGINAL = Objective("marginal", log_marginal_likelihood, marginal_value_and_dK)
+
+
+def leave_block_out(ts: np.ndarray, length: float) -> Objective:
+    """Leave-block-out log predictive for samples at sorted times ``ts`` (N,) s, in consecutive
+    blocks spanning at most ``length`` s (:func:`mmgp.data.folds._blocks`). No closed-form dK:
+    optimisers differentiate it by autograd."""
+    from ..data.folds import _blocks
+
+    idx, valid = _blocks(np.asarray(ts, dtype=np.float64), float(length))
+    return Objective(f"leave-block-out({length:g} s)", lambda K, y: block_loo_log_predictive(K, y, idx, valid))
+
+
+def get_objective(objective: str | Objective) -> Objective:
+    """An :class:`Objective` from itself or its name ("loo", "marginal")."""
+    if isinstance(objective, Objective):
+        return objective
+    named = {LOO.name: LOO, MARGINAL.name: MARGINAL}
+    if objective not in named:
+        raise ValueError(f"objective must be 'loo' or 'marginal', got {objective!r}")
+    return named[objective]

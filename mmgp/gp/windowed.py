@@ -1,19 +1,15 @@
-"""Out-of-window GP predictions and objectives for densely logged, time-correlated samples.
+"""Out-of-window GP predictions for densely logged, time-correlated samples.
 
 Logged samples are dense in time, so a sample's neighbours are near-copies of it and plain
-leave-one-out is almost in-sample. These closed forms leave a whole time window (or block) out.
+leave-one-out is almost in-sample. This closed form leaves a whole time window out; its
+hyperparameter counterpart is :func:`mmgp.gp.objectives.leave_block_out`.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ..data.folds import _blocks
 from .exact import ExactGP
-from .hyper import Hyper
 from .kernels import rbf_kernel
-from .linalg import LOG_2PI, robust_cholesky
 
 
 def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndarray, radius: float,
@@ -88,75 +84,3 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
     mean = torch.cat(means, 1).T.cpu().numpy()[inv] * gp.y_scaler_.scale_ + gp.y_scaler_.mean_
     var = torch.cat(vars_, 1).T.cpu().numpy()[inv] * gp.y_scaler_.scale_ ** 2
     return mean, var
-
-
-def block_loo_log_predictive(X, y, log_ls, log_sf, log_sn, noise_floor, idx, valid):
-    """Sum over samples of log p(y_i | all samples outside i's time block), per output (m,).
-
-    Exact leave-block-out: for block W, y_W | rest ~ N(y_W - P_WW^-1 [P y]_W, P_WW^-1), P = K^-1;
-    each sample contributes its marginal. X (N, d) and y (m, N) torch tensors; idx/valid from
-    :func:`_blocks`.
-    """
-    import torch
-
-    N = X.shape[0]
-    K = rbf_kernel(X, X, torch.exp(log_ls), torch.exp(log_sf))
-    K = K + (torch.exp(log_sn) + noise_floor)[:, None, None] * torch.eye(N, dtype=X.dtype, device=X.device)
-    L, _ = robust_cholesky(K)
-    P = torch.cholesky_inverse(L)
-    alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
-    it = torch.as_tensor(idx, device=X.device)
-    vt = torch.as_tensor(valid, dtype=X.dtype, device=X.device)
-    B = idx.shape[1]
-    mask2 = vt[:, :, None] * vt[:, None, :]
-    eye = torch.eye(B, dtype=X.dtype, device=X.device)
-    Pbb = P[:, it[:, :, None], it[:, None, :]] * mask2 + eye * (1 - mask2)    # (m, nb, B, B)
-    Lb = torch.linalg.cholesky(Pbb)
-    C = torch.cholesky_inverse(Lb)                                            # P_BB^-1
-    r = (C @ (alpha[:, it] * vt).unsqueeze(-1)).squeeze(-1)                  # y_B - mean_B
-    var = C.diagonal(dim1=-2, dim2=-1)
-    ll = -0.5 * (LOG_2PI + torch.log(var) + r ** 2 / var)
-    return (ll * vt).sum((-1, -2))
-
-
-def optimise_hyper_windowed(Xs, Ys, ts: np.ndarray, radius: float, init: Hyper, *, max_iter: int = 50,
-                            noise_floor: float = 1e-6) -> Hyper:
-    """Hyperparameters maximising the leave-block-out log predictive (block cross-validation in
-    time, blocks of 2 * ``radius`` seconds). Plain LOO on densely logged data is nearly in-sample (each sample's neighbours are
-    near-copies), so it rewards lengthscales short enough to memorise transients such as pushes.
-    Xs (N, d), Ys (N, m) standardised torch tensors, ts (N,) sorted times."""
-    import math
-
-    import torch
-    from scipy.optimize import minimize
-
-    m, d = Ys.shape[1], Xs.shape[1]
-    idx, valid = _blocks(ts, 2.0 * radius)
-    y = Ys.T.contiguous()
-    theta0 = np.concatenate([np.log(init.lengthscale).ravel(), np.log(init.signal_var),
-                             np.log(np.maximum(init.noise_var - noise_floor, 1e-8))])
-    bounds = ([(math.log(1e-2), math.log(1e3))] * (m * d) + [(math.log(1e-4), math.log(1e3))] * m
-              + [(math.log(1e-9), math.log(10.0))] * m)
-    lo_b, hi_b = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
-    theta0 = np.clip(theta0, lo_b, hi_b)
-    N = Xs.shape[0]
-
-    def fun(theta):
-        th = torch.as_tensor(theta, dtype=Xs.dtype, device=Xs.device).requires_grad_(True)
-        log_ls, log_sf, log_sn = th[:m * d].reshape(m, d), th[m * d:m * d + m], th[m * d + m:]
-        try:
-            F = block_loo_log_predictive(Xs, y, log_ls, log_sf, log_sn, noise_floor, idx, valid).sum()
-        except Exception:
-            return 1e10, np.zeros_like(theta)
-        prior = -0.5 * ((log_ls / 1.5) ** 2).sum() - 0.5 * ((log_sf / 2.0) ** 2).sum()
-        loss = -(F + prior) / N
-        if not torch.isfinite(loss):
-            return 1e10, np.zeros_like(theta)
-        loss.backward()
-        return float(loss.detach()), th.grad.cpu().numpy().astype(np.float64)
-
-    res = minimize(fun, theta0, jac=True, method="L-BFGS-B", bounds=bounds,
-                   options={"maxiter": max_iter, "maxfun": int(1.5 * max_iter) + 5})
-    theta = res.x if np.isfinite(res.fun) and res.fun < 1e9 else theta0
-    return Hyper(np.exp(theta[:m * d]).reshape(m, d), np.exp(theta[m * d:m * d + m]),
-                 np.exp(theta[m * d + m:]) + noise_floor)

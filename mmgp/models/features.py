@@ -8,26 +8,33 @@ from typing import Sequence
 
 import numpy as np
 
-from ..config import TrainConfig
 from ..data.differentiation import SavitzkyGolay, complete_derivatives, downsample
 from ..data.logs import RobotLog, read_log
 from ..errors import InputError
 
 
-def load_logs(paths: Sequence[str | Path], cfg: TrainConfig, robot=None) -> list[RobotLog]:
-    """Read, check, differentiate and (optionally) downsample each log."""
+def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_window_s: float | None = None,
+              rate_hz: float | None = None) -> list[RobotLog]:
+    """Read (paths) and check each log, complete its derivatives (Savitzky-Golay, window
+    ``diff_window_s`` or per joint by cross-validation) and downsample it to ``rate_hz``."""
     logs = []
     n_ref = None
-    for p in paths:
-        log = read_log(p, n_joints=robot.n_joints if robot is not None else None,
-                       joint_names=robot.joint_names if robot is not None else None)
+    for src in sources:
+        if isinstance(src, RobotLog):
+            log = src
+            if robot is not None:
+                robot.check_log(log.n_joints, log.joint_names, file=log.path)
+        else:
+            log = read_log(src, n_joints=robot.n_joints if robot is not None else None,
+                           joint_names=robot.joint_names if robot is not None else None)
         if n_ref is None:
             n_ref = log.n_joints
         elif log.n_joints != n_ref:
-            raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=p, column="q_0")
-        log = complete_derivatives(log, SavitzkyGolay(window_s=cfg.diff_window_s, cv=True))
-        if cfg.rate_hz is not None:
-            log = downsample(log, cfg.rate_hz)
+            raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=log.path,
+                             column="q_0")
+        log = complete_derivatives(log, SavitzkyGolay(window_s=diff_window_s, cv=True))
+        if rate_hz is not None:
+            log = downsample(log, rate_hz)
         logs.append(log)
     return logs
 
@@ -52,7 +59,7 @@ def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
 
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
-    """The mean basis a model uses: "payload", "rbd" or None (see TrainConfig.mean_basis)."""
+    """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis)."""
     rbd_ok = robot is not None and semiparametric == "residual"
     if kind == "auto":
         return "payload" if rbd_ok else None
@@ -69,13 +76,16 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = _features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
+    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
     f.t = np.concatenate([lg.t for lg in logs])
     return f
 
 
-def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-              friction_sign: float | None = None, basis_kind: str | None = None) -> Features:
+def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
+                   friction_sign=None, basis_kind: str | None = None) -> Features:
+    """GP inputs and targets at states q, dq, ddq and torques tau (T, n); ``friction_sign``
+    (+1 or -1, or per sample (T, 1)) replaces the smooth sign input (prediction on one sliding
+    branch)."""
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
@@ -97,7 +107,8 @@ def _features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scal
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
-def _input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:
+def input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:
+    """Names of the GP input columns, in order."""
     names = [f"q_{j}" for j in range(n)] + [f"dq_{j}" for j in range(n)] + [f"ddq_{j}" for j in range(n)]
     if with_friction:
         names += [f"tanh(dq_{j}/v_s)" for j in range(n)]

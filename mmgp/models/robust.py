@@ -1,38 +1,185 @@
-"""Robust linear regression (Huber IRLS) of torques on regressor columns: per output, or one
-coefficient vector shared by all outputs (a payload's inertial parameters load every joint)."""
+"""Robust linear regression of torques on regressor columns: the one implementation in mmgp.
+
+``robust_regression`` fits outputs ``Y`` (N, n) on columns ``A`` (N, n, p) by iteratively
+reweighted least squares (IRLS): Huber steps (knee at ``HUBER_K`` robust scales) and then,
+optionally, Tukey-bisquare steps (``TUKEY_K``), whose weights fall to zero, so gross outliers
+(pushes) stop pulling the fit at all. Coefficients are either one vector shared by all outputs
+(a payload's or an effect library's parameters load every joint) or one vector per output.
+
+Users: the EM's mode means (``fit_basis_coefficients``, ``fit_shared_coefficients``, a few Huber
+steps with minimum-norm solves) and the diagnosis's whole-library fit (Huber to convergence,
+then Tukey, on masked equations, solved through the Gram matrix because the library has ~100
+columns over ~40,000 stacked equations).
+"""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+HUBER_K = 1.345   # 95% efficiency at the normal
+TUKEY_K = 4.685   # 95% efficiency at the normal
+_MAD = 1.4826     # MAD -> standard deviation at the normal
+_EPS = 1e-12      # floor of a robust scale (N*m): keeps noise-free data finite
+
+
+@dataclass
+class RobustFit:
+    """``coef``: (p,) shared or (n, p) per output; ``weights``: (N, n) robustness weights (times
+    the mask) of the last solve; ``scale``: (n,) robust residual scale per output (MAD)."""
+
+    coef: np.ndarray
+    weights: np.ndarray
+    scale: np.ndarray
+
+
+def solve_gram(G: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Solution of ``G x = c`` for a Gram matrix ``G`` (p, p), with a ridge of 1e-10 times its
+    largest diagonal entry: exactly collinear columns then share their coefficient instead of
+    blowing up. Falls back to least squares if ``G`` is still singular."""
+    d = np.diag(G).copy()
+    reg = 1e-10 * (d.max() if d.size else 1.0) + 1e-300
+    try:
+        return np.linalg.solve(G + reg * np.eye(len(c)), c)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(G, c, rcond=None)[0]
+
+
+def _huber(r: np.ndarray, knee: np.ndarray) -> np.ndarray:
+    return np.minimum(1.0, knee / np.maximum(np.abs(r), 1e-300))
+
+
+def _tukey(r: np.ndarray, knee: np.ndarray) -> np.ndarray:
+    u = np.abs(r) / knee
+    return np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
+
+
+def _robust_scale(r: np.ndarray, mask: np.ndarray | None, centre: bool) -> np.ndarray:
+    """(n,) MAD of each output's residual over its unmasked rows, about the median (``centre``)
+    or about zero; 1 for an output without rows."""
+    if mask is None:
+        med = np.median(r, 0) if centre else 0.0
+        return _MAD * np.median(np.abs(r - med), 0) + _EPS
+    out = np.ones(r.shape[1])
+    for j in range(r.shape[1]):
+        v = r[mask[:, j] > 0, j]
+        if v.size:
+            out[j] = _MAD * np.median(np.abs(v - (np.median(v) if centre else 0.0)))
+    return out + _EPS
+
+
+class _MinNormSolver:
+    """Weighted least squares by ``lstsq`` on columns scaled to unit RMS (minimum norm,
+    ``rcond`` 1e-7): a column the data cannot see gets coefficient zero, not a blow-up."""
+
+    def __init__(self, A: np.ndarray):
+        N, m, p = A.shape
+        rms = np.sqrt((A.reshape(N * m, p) ** 2).mean(0))
+        self.p = p
+        self.cols = np.flatnonzero(rms > 1e-12 * (rms.max() + 1e-300))
+        self.rms = rms[self.cols]
+        self.As = A[:, :, self.cols] / self.rms
+
+    def __call__(self, Y: np.ndarray, sw: np.ndarray) -> np.ndarray:
+        N, m = Y.shape
+        c, *_ = np.linalg.lstsq((self.As * sw[:, :, None]).reshape(N * m, -1), (Y * sw).ravel(), rcond=1e-7)
+        return c
+
+    def predict(self, c: np.ndarray) -> np.ndarray:
+        N, m, k = self.As.shape
+        return (self.As.reshape(N * m, k) @ c).reshape(N, m)
+
+    def coefficients(self, c: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.p)
+        out[self.cols] = c / self.rms
+        return out
+
+
+class _GramSolver:
+    """Weighted least squares through the normal equations with a relative ridge of 1e-8 of each
+    column's own weighted sum of squares (scale-free, so columns in N*m and in N*m per kg mix):
+    one p x p solve per step, far cheaper than an SVD of a tall stacked system."""
+
+    def __init__(self, A: np.ndarray):
+        self.A = A
+        self.cols = np.arange(A.shape[2])
+
+    def __call__(self, Y: np.ndarray, sw: np.ndarray) -> np.ndarray:
+        Aw = (self.A * sw[:, :, None]).reshape(-1, self.A.shape[2])
+        G = Aw.T @ Aw
+        return solve_gram(G + 1e-8 * np.diag(np.diag(G)), Aw.T @ (Y * sw).reshape(-1))
+
+    def predict(self, c: np.ndarray) -> np.ndarray:
+        return self.A @ c
+
+    def coefficients(self, c: np.ndarray) -> np.ndarray:
+        return c
+
+
+def _irls_shared(A, Y, mask, *, huber_steps, tukey_steps, tol, whiten, centre, solver, huber_k) -> RobustFit:
+    N, m, p = A.shape
+    solve = _MinNormSolver(A) if solver == "lstsq" else _GramSolver(A)
+    if len(solve.cols) == 0:
+        return RobustFit(np.zeros(p), np.ones((N, m)) if mask is None else mask.astype(float), np.ones(m))
+    h = np.ones((N, m)) if mask is None else np.asarray(mask, dtype=np.float64).copy()
+    # whitened: each output's rows divided by its residual scale, so outputs in different units
+    # or with different noise count alike; the first pass uses the outputs' own spread
+    scale = Y.std(0) + _EPS if whiten else np.ones(m)
+    c = solve(Y, np.sqrt(h) / scale if whiten else np.sqrt(h))
+    for psi, k, n_steps in ((_huber, huber_k, huber_steps), (_tukey, TUKEY_K, tukey_steps)):
+        for _ in range(n_steps):
+            r = Y - solve.predict(c)
+            scale = _robust_scale(r, mask, centre)
+            h = psi(r, k * scale) if mask is None else mask * psi(r, k * scale)
+            c_new = solve(Y, np.sqrt(h) / scale if whiten else np.sqrt(h))
+            done = tol is not None and np.allclose(c_new, c, rtol=tol, atol=1e-12)
+            c = c_new
+            if done:
+                break
+    return RobustFit(solve.coefficients(c), h, scale)
+
+
+def robust_regression(A: np.ndarray, Y: np.ndarray, *, shared: bool = True, mask: np.ndarray | None = None,
+                      huber_steps: int = 4, tukey_steps: int = 0, tol: float | None = None,
+                      whiten: bool = False, centre: bool = True, solver: str = "lstsq",
+                      huber_k: float = HUBER_K) -> RobustFit:
+    """Robust (IRLS) fit of ``Y`` (N, n) on columns ``A`` (N, n, p).
+
+    shared: one coefficient vector (p,) for all outputs (``Y[:, j] ~ A[:, j] @ c``), else one per
+        output ((n, p), each output fitted on its own).
+    mask: (N, n) 0/1 weights of the equations (0 leaves an output's equation out at that row).
+    huber_steps, tukey_steps: reweighting steps after the first (unweighted) solve: Huber
+        weights, then Tukey-bisquare weights from where Huber ended; each phase stops early when
+        the coefficients move by less than ``tol`` (relative; None: run every step).
+        ``huber_k``: the Huber knee in robust scales.
+    whiten: divide each output's rows by its current robust scale (shared fits only matter).
+    centre: measure each output's scale about its residual median (an unmodelled constant does
+        not inflate it) or about zero.
+    solver: "lstsq" (minimum-norm on unit-RMS columns, for rank-deficient regressors) or "gram"
+        (ridge-regularised normal equations, for many stacked rows).
+    """
+    A = np.asarray(A, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+    kw = dict(huber_steps=huber_steps, tukey_steps=tukey_steps, tol=tol, whiten=whiten, centre=centre,
+              solver=solver, huber_k=huber_k)
+    if shared:
+        return _irls_shared(A, Y, mask, **kw)
+    fits = [_irls_shared(A[:, j:j + 1], Y[:, j:j + 1], None if mask is None else mask[:, j:j + 1], **kw)
+            for j in range(Y.shape[1])]
+    return RobustFit(np.stack([f.coef for f in fits]), np.concatenate([f.weights for f in fits], 1),
+                     np.concatenate([f.scale for f in fits]))
 
 
 def fit_basis_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 4,
                            huber: float = 1.345) -> np.ndarray:
     """Per-output linear coefficients (n, p) with Y[:, j] ~ basis[:, j, :] @ coef[j].
 
-    basis (N, n, p), Y (N, n). Huber-weighted least squares (a few IRLS steps, scale from the
+    basis (N, n, p), Y (N, n). Huber-weighted least squares (``n_irls`` solves, scale from the
     MAD), because the samples a mode is fitted on may still hold undetected pushes. Columns are
-    scaled to unit RMS and the solve is minimum-norm (``lstsq``), so rank-deficient regressors
-    (parameters a joint cannot see) get zero coefficients instead of blowing up.
+    scaled to unit RMS and the solve is minimum-norm, so rank-deficient regressors (parameters a
+    joint cannot see) get zero coefficients instead of blowing up.
     """
-    N, n, p = basis.shape
-    coef = np.zeros((n, p))
-    for j in range(n):
-        Aj = basis[:, j, :]
-        rms = np.sqrt((Aj ** 2).mean(0))
-        cols = np.flatnonzero(rms > 1e-12 * (rms.max() + 1e-300))
-        if len(cols) == 0:
-            continue
-        As = Aj[:, cols] / rms[cols]
-        y = Y[:, j]
-        w = np.ones(N)
-        for _ in range(n_irls):
-            sw = np.sqrt(w)
-            c, *_ = np.linalg.lstsq(As * sw[:, None], y * sw, rcond=1e-7)
-            r = y - As @ c
-            scale = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-12
-            w = np.minimum(1.0, huber * scale / np.maximum(np.abs(r), 1e-300))
-        coef[j, cols] = c / rms[cols]
-    return coef
+    return robust_regression(basis, Y, shared=False, huber_steps=n_irls - 1, huber_k=huber).coef
 
 
 def fit_shared_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 5,
@@ -41,24 +188,8 @@ def fit_shared_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 5
     Y[:, j] ~ basis[:, j, :] @ c for every j (e.g. a payload's 10 inertial parameters, which
     load every joint). Huber-weighted least squares over the stacked (N * n) rows, each output's
     rows scaled by its robust residual scale, re-estimated every IRLS step. basis (N, n, p)."""
-    N, n, p = basis.shape
-    A = basis.reshape(N * n, p)
-    rms = np.sqrt((A ** 2).mean(0))
-    cols = np.flatnonzero(rms > 1e-12 * (rms.max() + 1e-300))
-    coef = np.zeros(p)
-    if len(cols) == 0:
-        return np.zeros((n, p))
-    As = basis[:, :, cols] / rms[cols]                          # (N, n, k)
-    scale = Y.std(0) + 1e-12                                    # first pass: the outputs' spread
-    w = np.ones((N, n))
-    for _ in range(n_irls):
-        sw = np.sqrt(w) / scale
-        c, *_ = np.linalg.lstsq((As * sw[:, :, None]).reshape(N * n, -1), (Y * sw).ravel(), rcond=1e-7)
-        r = Y - As @ c
-        scale = 1.4826 * np.median(np.abs(r - np.median(r, 0)), 0) + 1e-12
-        w = np.minimum(1.0, huber * scale / np.maximum(np.abs(r), 1e-300))
-    coef[cols] = c / rms[cols]
-    return np.tile(coef, (n, 1))
+    coef = robust_regression(basis, Y, shared=True, whiten=True, huber_steps=n_irls - 1, huber_k=huber).coef
+    return np.tile(coef, (Y.shape[1], 1))
 
 
 def basis_rank(basis: np.ndarray, max_rows: int = 1000, seed: int = 0, shared: bool = False) -> int:

@@ -21,7 +21,6 @@ import importlib.metadata
 import json
 import os
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -29,6 +28,7 @@ import numpy as np
 import pinocchio as pin
 
 from ..errors import InputError
+from .inertial import transport_matrix
 
 __all__ = [
     "ROBOT_FILES",
@@ -36,9 +36,6 @@ __all__ = [
     "robot_urdf_path",
     "RobotModel",
     "load_robot",
-    "PayloadFit",
-    "fit_payload",
-    "point_mass_parameters",
 ]
 
 # example-robot-data robot name -> URDF path under its ``robots`` folder. Names follow
@@ -150,59 +147,6 @@ def robot_urdf_path(name: str) -> Path:
         why = "is not installed in this example-robot-data" if rel is not None else "is not known"
         raise InputError(f"robot '{name}' {why}; available robots: {', '.join(available_robots())}")
     return root / rel
-
-
-# --------------------------------------------------------------------------------------------
-# Inertial-parameter helpers
-
-
-def _vech(S: np.ndarray) -> np.ndarray:
-    """Symmetric 3x3 -> Pinocchio order [xx, xy, yy, xz, yz, zz]."""
-    return np.array([S[0, 0], S[0, 1], S[1, 1], S[0, 2], S[1, 2], S[2, 2]])
-
-
-def _unvech(v: np.ndarray) -> np.ndarray:
-    xx, xy, yy, xz, yz, zz = v
-    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-
-
-def _transport(pi: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Dynamic parameters expressed in frame B -> the same body expressed in frame A.
-
-    ``R``, ``p``: rotation and origin of B in A (x_A = R x_B + p). Linear in ``pi``: the inertia
-    about A's origin is R I_B R^T + (2 p.h) 1 - h p^T - p h^T + m (|p|^2 1 - p p^T), h = R h_B.
-    """
-    m, hB, IB = pi[0], pi[1:4], _unvech(pi[4:10])
-    h = R @ hB
-    IA = R @ IB @ R.T + (2.0 * p @ h) * np.eye(3) - np.outer(h, p) - np.outer(p, h) \
-        + m * ((p @ p) * np.eye(3) - np.outer(p, p))
-    return np.concatenate([[m], h + m * p, _vech(IA)])
-
-
-def _transport_matrix(placement: pin.SE3) -> np.ndarray:
-    """10x10 matrix A with pi_parent_joint = A @ pi_link for a link frame at ``placement``."""
-    R, p = np.asarray(placement.rotation), np.asarray(placement.translation)
-    return np.stack([_transport(e, R, p) for e in np.eye(10)], axis=1)
-
-
-def point_mass_parameters(mass: float, com: np.ndarray) -> np.ndarray:
-    """Dynamic parameters (10,) of a point mass ``mass`` (kg) at ``com`` (3,), m, in its frame."""
-    c = np.asarray(com, dtype=np.float64)
-    return np.concatenate([[mass], mass * c, mass * _vech((c @ c) * np.eye(3) - np.outer(c, c))])
-
-
-def _point_mass_jacobian(mass: float, com: np.ndarray) -> np.ndarray:
-    """d point_mass_parameters / d(mass, c_x, c_y, c_z), shape (10, 4)."""
-    c = np.asarray(com, dtype=np.float64)
-    J = np.zeros((10, 4))
-    J[:, 0] = point_mass_parameters(1.0, c)
-    J[1:4, 1:4] = mass * np.eye(3)
-    for k in range(3):
-        e = np.zeros(3)
-        e[k] = 1.0
-        dS = 2.0 * c[k] * np.eye(3) - np.outer(e, c) - np.outer(c, e)
-        J[4:, 1 + k] = mass * _vech(dS)
-    return J
 
 
 # --------------------------------------------------------------------------------------------
@@ -456,7 +400,7 @@ class RobotModel:
             raise ValueError("link is required")
         frame = self._frame(link)
         j = frame.parentJoint
-        A = _transport_matrix(frame.placement)
+        A = transport_matrix(frame.placement)
         Y = self.regressor(q, dq, ddq)
         Yj = Y[..., 10 * (j - 1):10 * j]
         return Yj @ A
@@ -557,115 +501,3 @@ def load_robot(robot: str | None = None, urdf: str | os.PathLike | None = None,
     if n_log is not None:
         model.check_log(n_log, meta.get("joint_names") if joint_names is None else None, file=file)
     return model
-
-
-# --------------------------------------------------------------------------------------------
-# Payload identification
-
-
-@dataclass
-class PayloadFit:
-    """A rigid payload identified on ``link``.
-
-    ``mass`` (kg) >= 0; ``com`` (3,) m in the link frame; ``*_std`` one standard deviation from the
-    residual variance and the normal matrix; ``inertia`` (3, 3) kg*m^2 about the com in the link
-    frame (only with ``fit_inertia``); ``residual_rms`` N*m after the fit; ``n_samples`` used.
-    """
-
-    link: str
-    mass: float
-    com: np.ndarray
-    mass_std: float
-    com_std: np.ndarray
-    inertia: np.ndarray | None = None
-    residual_rms: float = float("nan")
-    n_samples: int = 0
-
-    def params(self) -> dict:
-        """Contract ``payload`` params (CONTRACT section 3)."""
-        return {"link": self.link, "mass": float(self.mass), "com": [float(c) for c in self.com]}
-
-
-def fit_payload(robot: RobotModel, q, dq, ddq, tau_residual, link: str, fit_inertia: bool = False,
-                weights=None) -> PayloadFit:
-    """Least-squares payload on ``link`` explaining ``tau_residual = tau - tau_rbd`` ``(T, n)`` N*m.
-
-    ``fit_inertia=False``: a point mass (mass >= 0, com), solved as a bounded nonlinear least
-    squares started from the linear [m, m*c] fit. ``fit_inertia=True``: all 10 parameters
-    (linear; mass >= 0 enforced exactly by refitting at m = 0 when the free optimum is negative).
-    ``weights``: per-sample ``(T,)`` or per-entry ``(T, n)`` non-negative weights, e.g. a mode's
-    posterior probabilities (mode-wise fitting is the caller's job).
-    """
-    from scipy.optimize import least_squares
-
-    Y = robot.link_regressor(q, dq, ddq, link)
-    if Y.ndim == 2:
-        Y = Y[None]
-    r = np.asarray(tau_residual, dtype=np.float64).reshape(Y.shape[0], Y.shape[1])
-    w = np.ones_like(r) if weights is None else np.broadcast_to(
-        np.asarray(weights, dtype=np.float64).reshape(Y.shape[0], -1), r.shape)
-    if (w < 0).any() or not np.isfinite(w).all():
-        raise ValueError("weights must be finite and non-negative")
-    keep = w.reshape(-1) > 0
-    sw = np.sqrt(w.reshape(-1)[keep])
-    A = Y.reshape(-1, 10)[keep] * sw[:, None]
-    b = r.reshape(-1)[keep] * sw
-    w_sum = float(w.sum())
-    n_samples = int((w > 0).any(axis=1).sum())
-    scale = np.linalg.norm(A, axis=0)
-    scale[scale == 0] = 1.0
-
-    def lstsq(cols):
-        x = np.zeros(A.shape[1])
-        sol = np.linalg.lstsq(A[:, cols] / scale[cols], b, rcond=None)[0]
-        x[cols] = sol / scale[cols]
-        return x
-
-    def covariance(J, res, p):
-        sigma2 = float(res @ res) / max(w_sum - p, 1.0)
-        return sigma2 * np.linalg.pinv(J.T @ J)
-
-    if fit_inertia:
-        cols = np.arange(10)
-        x = lstsq(cols)
-        if x[0] < 0:  # one bound on a convex problem: the optimum then lies on m = 0
-            x = lstsq(cols[1:])
-        res = A @ x - b
-        cov = covariance(A, res, 10)
-        m, h = x[0], x[1:4]
-        com = h / m if m > 0 else np.zeros(3)
-        I_c = _unvech(x[4:10]) - (m * ((com @ com) * np.eye(3) - np.outer(com, com)))
-        # Delta method for c = h / m.
-        G = np.zeros((3, 10))
-        if m > 0:
-            G[:, 0] = -h / m ** 2
-            G[:, 1:4] = np.eye(3) / m
-        com_cov = G @ cov @ G.T
-        return PayloadFit(link=link, mass=float(m), com=com, mass_std=float(np.sqrt(max(cov[0, 0], 0))),
-                          com_std=np.sqrt(np.clip(np.diag(com_cov), 0, None)), inertia=I_c,
-                          residual_rms=float(np.sqrt(res @ res / max(w_sum, 1e-300))), n_samples=n_samples)
-
-    # Point mass: tau = m * Y (point_mass_parameters(1, c)). Start from the linear [m, m c] fit
-    # (which ignores the payload's rotational inertia about the link origin), then refine.
-    x0 = lstsq(np.arange(4))
-    m0 = max(x0[0], 0.0)
-    c0 = x0[1:4] / x0[0] if x0[0] > 1e-9 * max(1.0, np.abs(x0).max()) else np.zeros(3)
-    if not np.isfinite(c0).all() or np.abs(c0).max() > 10.0:
-        c0 = np.zeros(3)
-
-    def fun(z):
-        return A @ point_mass_parameters(z[0], z[1:]) - b
-
-    def jac(z):
-        return A @ _point_mass_jacobian(z[0], z[1:])
-
-    sol = least_squares(fun, np.concatenate([[m0], c0]), jac=jac,
-                        bounds=([0.0, -np.inf, -np.inf, -np.inf], np.inf),
-                        x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200)
-    z = sol.x
-    res = fun(z)
-    cov = covariance(jac(z), res, 4)
-    return PayloadFit(link=link, mass=float(z[0]), com=z[1:].copy(),
-                      mass_std=float(np.sqrt(max(cov[0, 0], 0))),
-                      com_std=np.sqrt(np.clip(np.diag(cov)[1:], 0, None)), inertia=None,
-                      residual_rms=float(np.sqrt(res @ res / max(w_sum, 1e-300))), n_samples=n_samples)

@@ -25,11 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import recording as sim
+from .excitation import push_schedule, sinusoid_reference
+from .mjcf import body_name, load_model, panda_urdf_path, reduced_pinocchio_model, robot_urdf_path, set_payload
+from .recording import Push, simulate
+from .scenarios import PANDA_JOINTS, REPLICA
 
 # Same physical numbers as mmgp.sim.REPLICA: a 0.1 kg rod of 0.2 m and a 0.73 kg ball at its end,
 # horizontal joint axis (world -y), q = 0 with the lever horizontal.
-_P = sim.REPLICA
+_P = REPLICA
 ACTUATOR_URDF = f"""<?xml version="1.0"?>
 <robot name="actuator">
   <link name="base"/>
@@ -69,9 +72,9 @@ def robot_setup(robot: str) -> tuple[str, list[str]]:
     if robot == "actuator":
         return actuator_urdf_path(), ["lever_joint"]
     if robot == "panda":
-        return sim.panda_urdf_path(), list(sim.PANDA_JOINTS)
-    urdf = sim.robot_urdf_path(robot)
-    m = sim.reduced_pinocchio_model(urdf)
+        return panda_urdf_path(), list(PANDA_JOINTS)
+    urdf = robot_urdf_path(robot)
+    m = reduced_pinocchio_model(urdf)
     return urdf, [str(n) for n in m.names[1:]]
 
 
@@ -84,36 +87,24 @@ def nominal_robot(spec: dict):
 
 
 def _reference(robot: str, rng, urdf, joints, duration):
-    m = sim.reduced_pinocchio_model(urdf, joints)
+    m = reduced_pinocchio_model(urdf, joints)
     lo, hi = np.array(m.lowerPositionLimit), np.array(m.upperPositionLimit)
     lo = np.where(np.isfinite(lo) & (lo > -10), lo, -np.pi)
     hi = np.where(np.isfinite(hi) & (hi < 10), hi, np.pi)
     if robot == "actuator":
         # lever swings through most of its range (gravity torque changes sign), as in the replica
         lo, hi = np.array([-1.0]), np.array([1.6])
-        return sim._sinusoid_reference(rng, lo, hi, max_speed=1.0, f_range=(0.05, 0.3), fill=0.9)
-    return sim._sinusoid_reference(rng, lo, hi, max_speed=0.8, f_range=(0.04, 0.25))
+        return sinusoid_reference(rng, lo, hi, max_speed=1.0, f_range=(0.05, 0.3), fill=0.9)
+    return sinusoid_reference(rng, lo, hi, max_speed=0.8, f_range=(0.04, 0.25))
 
 
-def _simulate(spec: dict, seed: int, physics: dict, offsets: dict):
-    import mujoco
-
-    robot = spec["robot"]
-    urdf, joints = robot_setup(robot)
-    n = len(joints)
-    rate = float(spec.get("rate_hz", 200.0))
-    T = int(spec.get("n_samples", 4000))
-    duration = T / rate
-    rng = np.random.default_rng(seed)
-    reference = _reference(robot, rng, urdf, joints, duration)
-    kw = {k: physics[k] for k in ("frictionloss", "damping", "armature", "stiffness", "springref") if k in physics}
-    payload = physics.get("payload")
-    if spec.get("modes") and payload is None:
-        payload = {"link": "panda_link7" if n > 1 else "lever", "mass": float(spec["modes"][0]), "com": [0.0, 0.0, 0.1]}
-    model = sim.load_model(urdf, joints, payload=payload, **kw)
-    nominal = sim.load_model(urdf, joints)
-    load_fric = physics.get("load_friction")  # (c (n,), beta (n,)) or None
+def _mode_switching(spec: dict, rng, duration: float, load_fric):
+    """(mode_fn, before_step) of a case: two payload modes alternating in segments of
+    U(0.25, 0.45) * duration (when ``spec["modes"]``), load-dependent friction (when
+    ``load_fric = (c (n,), beta (n,))``) set every step from the motor torque. None where unused."""
     modes = spec.get("modes")
+    if not modes and load_fric is None:
+        return None, None
     state = {"mode": None}
     bounds, seq = [0.0], [0]
     if modes:
@@ -131,38 +122,62 @@ def _simulate(spec: dict, seed: int, physics: dict, offsets: dict):
         if modes:
             k = mode_fn(t)
             if k != state["mode"]:
-                sim.set_payload(m, modes[k])
+                set_payload(m, modes[k])
                 state["mode"] = k
 
-    pushes = []
-    if spec.get("pushes"):
-        if robot == "actuator":
-            bodies = ["lever"]
-        else:
-            bodies = [sim._body_name(sim.reduced_pinocchio_model(urdf, joints), j) for j in range(max(1, n - 4), n + 1)]
-        peak = spec.get("push_force", (10.0, 40.0) if n > 1 else (8.0, 20.0))
-        for t0, d in sim._push_schedule(rng, duration, gap=(1.5, 5.0), dur=(0.3, 1.5), first=(1.0, 3.0)):
-            u = rng.standard_normal(3)
-            if robot == "actuator":
-                u = np.array([0.0, 0.0, rng.choice([-1.0, 1.0])])
-            u /= np.linalg.norm(u)
-            pushes.append(sim.Push(t0=float(t0), duration=float(d), body=str(rng.choice(bodies)),
-                                   force=tuple(float(x) for x in u * rng.uniform(*peak)),
-                                   point=(sim.REPLICA["lever_length"], 0.0, 0.0) if robot == "actuator" else (0, 0, 0),
-                                   frame="body" if robot == "actuator" else "world",
-                                   ramp=float(rng.uniform(0.1, 0.25))))
-    if robot == "actuator":
-        ctrl_kw = dict(kp=sim.REPLICA["kp"], kd=sim.REPLICA["kd"], controller_model=None)
+    return (mode_fn if modes else None), before_step
+
+
+def _case_pushes(spec: dict, rng, urdf, joints, duration: float) -> list[Push]:
+    """Pushes of a case: Panda, world forces at one of the last links; actuator, a force
+    perpendicular to the lever at the load, random sign."""
+    if not spec.get("pushes"):
+        return []
+    actuator = spec["robot"] == "actuator"
+    n = len(joints)
+    if actuator:
+        bodies = ["lever"]
     else:
-        ctrl_kw = dict(kp=400.0, kd=40.0, controller_model=nominal)
+        bodies = [body_name(reduced_pinocchio_model(urdf, joints), j) for j in range(max(1, n - 4), n + 1)]
+    peak = spec.get("push_force", (10.0, 40.0) if n > 1 else (8.0, 20.0))
+    pushes = []
+    for t0, d in push_schedule(rng, duration, gap=(1.5, 5.0), dur=(0.3, 1.5), first=(1.0, 3.0)):
+        u = rng.standard_normal(3)
+        if actuator:
+            u = np.array([0.0, 0.0, rng.choice([-1.0, 1.0])])
+        u /= np.linalg.norm(u)
+        pushes.append(Push(t0=float(t0), duration=float(d), body=str(rng.choice(bodies)),
+                           force=tuple(float(x) for x in u * rng.uniform(*peak)),
+                           point=(REPLICA["lever_length"], 0.0, 0.0) if actuator else (0, 0, 0),
+                           frame="body" if actuator else "world", ramp=float(rng.uniform(0.1, 0.25))))
+    return pushes
+
+
+def _simulate(spec: dict, seed: int, physics: dict, offsets: dict):
+    robot = spec["robot"]
+    urdf, joints = robot_setup(robot)
+    n = len(joints)
+    rate = float(spec.get("rate_hz", 200.0))
+    duration = int(spec.get("n_samples", 4000)) / rate
+    rng = np.random.default_rng(seed)
+    reference = _reference(robot, rng, urdf, joints, duration)
+    kw = {k: physics[k] for k in ("frictionloss", "damping", "armature", "stiffness", "springref") if k in physics}
+    payload = physics.get("payload")
+    if spec.get("modes") and payload is None:
+        payload = {"link": "panda_link7" if n > 1 else "lever", "mass": float(spec["modes"][0]), "com": [0.0, 0.0, 0.1]}
+    model = load_model(urdf, joints, payload=payload, **kw)
+    mode_fn, before_step = _mode_switching(spec, rng, duration, physics.get("load_friction"))
+    pushes = _case_pushes(spec, rng, urdf, joints, duration)
+    if robot == "actuator":
+        ctrl_kw = dict(kp=REPLICA["kp"], kd=REPLICA["kd"], controller_model=None)
+    else:
+        ctrl_kw = dict(kp=400.0, kd=40.0, controller_model=load_model(urdf, joints))
     tau_noise = float(spec.get("tau_noise", 0.05 if n > 1 else 0.02))
     dq_noise = spec.get("dq_noise", 0.005 if n > 1 else None)
-    rec = sim.simulate(model, reference, duration, rate_hz=rate, pushes=pushes,
-                       before_step=before_step if (load_fric is not None or modes) else None,
-                       mode_fn=mode_fn if modes else None,
-                       q_resolution=2 * np.pi / 2 ** (19 if n > 1 else 16), tau_noise=tau_noise,
-                       dq_noise=dq_noise, log_dq=dq_noise is not None, seed=int(rng.integers(2 ** 31)),
-                       robot=spec["robot"] if robot != "actuator" else None, joint_names=joints, **ctrl_kw)
+    rec = simulate(model, reference, duration, rate_hz=rate, pushes=pushes, before_step=before_step, mode_fn=mode_fn,
+                   q_resolution=2 * np.pi / 2 ** (19 if n > 1 else 16), tau_noise=tau_noise,
+                   dq_noise=dq_noise, log_dq=dq_noise is not None, seed=int(rng.integers(2 ** 31)),
+                   robot=spec["robot"] if robot != "actuator" else None, joint_names=joints, **ctrl_kw)
     # offsets go onto the logged signals only
     for j, off in offsets.get("encoder", {}).items():
         rec.q[:, j] += off

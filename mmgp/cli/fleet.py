@@ -1,0 +1,71 @@
+"""The fleet command: many logs as Ray tasks, one table, trends and drift flags."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from ..errors import InputError
+from .common import ProgressDisplay, _fail, app, force_option, out_dir_option, quiet_option
+
+
+def _progress(shown: ProgressDisplay):
+    shown.stage("fleet: logs", None)  # the count is known when the first log is back
+
+    def step(done: int, total: int, outcome: dict) -> None:
+        what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
+        shown.step(f"  [{done}/{total}] {outcome['log']}: {what} ({outcome['seconds']:.1f} s)", completed=done,
+                   total=total)
+
+    return step
+
+
+def _report(fleet, out: Path) -> str:
+    s = fleet.summary()
+    lines = [f"{s['n_logs']} log(s), {s['n_failed']} failed; {s['engine']} engine, {s['workers'] or 'cluster'} "
+             f"worker(s), {s['seconds']:.1f} s."]
+    for d in fleet.drift_["series"]:
+        if d["status"] == "drift":
+            lines.append(f"DRIFT {d['robot']} {d['effect']} {d['joint'] or ''} {d['param']}: from {d['first_log']} "
+                         f"({d['first_value']:.4g}, baseline {d['baseline']['lo']:.4g}..{d['baseline']['hi']:.4g}), "
+                         f"{len(d['flagged_logs'])} log(s) flagged")
+        elif d["status"] == "appeared":
+            lines.append(f"NEW   {d['robot']} {d['effect']} {d['joint'] or ''} {d['param']}: first in {d['first_log']}")
+    lines.append(f"Wrote {out}/report.html, fleet.parquet, drift.json, fleet.json, trends/, logs/.")
+    return "\n".join(lines)
+
+
+@app.command()
+def fleet(logs: List[Path] = typer.Argument(..., help="Log files, or folders of logs (*.parquet, *.pq, *.csv)."),
+          out: Path = out_dir_option(),
+          address: Optional[str] = typer.Option(None, "--address",
+                                                help="Ray cluster address (e.g. auto, ray://host:10001); "
+                                                     "default: a local Ray on this machine."),
+          train: bool = typer.Option(False, "--train", help="Also train a model on each log."),
+          robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name for every log."),
+          urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot, for every log."),
+          workers: Optional[int] = typer.Option(None, "--workers",
+                                                help="Tasks at once (default: the cores available)."),
+          baseline: int = typer.Option(5, "--baseline", help="First logs per robot that define the drift baseline."),
+          serial: bool = typer.Option(False, "--serial", help="Run the logs one after another here, without Ray."),
+          force: bool = force_option(),
+          quiet: bool = quiet_option()):
+    """Diagnose (and with --train train on) every log as a Ray task; write one table (DIR/fleet.parquet),
+    trend plots (DIR/trends/), drift flags (DIR/drift.json) and DIR/report.html."""
+    from ..data.outputs import atomic_output_dir
+    from ..fleet import Fleet
+    from ..fleet.engine import RayMissingError
+
+    runner = Fleet(robot=robot, urdf=urdf, train=train, engine="serial" if serial else "ray", address=address,
+                   workers=workers, baseline=baseline)
+    try:
+        with atomic_output_dir(out, force=force) as tmp, ProgressDisplay(quiet) as shown:
+            runner.fit(logs, progress=_progress(shown))
+            runner.write(tmp)
+    except InputError as exc:
+        _fail(exc)
+    except RayMissingError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1)
+    typer.echo(_report(runner, out))

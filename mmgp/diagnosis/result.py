@@ -1,0 +1,158 @@
+"""What a diagnosis tells: findings (CONTRACT section 2/3), the held-out error per stage, where
+the residual concentrates, a Markdown report and residual plots."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..data.outputs import jsonable
+
+STAGES = ("nominal", "with_physics", "with_physics_and_gp")
+WHOLE_LOG = ("external_disturbance", "mode_switch")
+
+
+def effect_finding(effect, params: dict, std: dict, evidence: dict, ctx, main_joint: int) -> dict:
+    """A found effect per CONTRACT section 2: effect, joint or link, params, evidence, explanation
+    (``main_joint``: the joint whose held-out error it cuts most)."""
+    j = main_joint
+    red = 100 * evidence["cv_error_reduction"]
+    tail = (f"adding it cuts the held-out error on joint {j} ({ctx.joint_names[j]}) by {red:.0f}%"
+            if red > 0 else "it is kept by the selection rule although its own held-out gain is small")
+    return {"effect": effect.name, **effect.where(ctx), "params": effect.report_params(params, ctx), "evidence": evidence,
+            "explanation": f"{effect.describe(params, std, ctx)} is missing from the model; {tail}."}
+
+
+def mode_switch_finding(ms, ctx, *, alpha: float, n_folds: int) -> dict:
+    """The ``mode_switch`` finding of a :class:`mmgp.diagnosis.modes.ModeSwitch`."""
+    eff, d, pm = ms.effect, ms.test["d"], ms.per_mode
+    first, unit = next(iter(eff.units.items()))
+    where = next(iter(eff.where(ctx).values()))
+    modes = [f"{m[first]:.3g} {unit} ({100 * m['fraction']:.0f}%{' of the time' if k == 0 else ''})"
+             for k, m in enumerate(pm)]
+    return {
+        "effect": "mode_switch", "joint": None,
+        "params": {"n_modes": 2, "per_mode": pm, "switch_times_s": ms.switch_times_s[:100]},
+        "evidence": {"held_out_gain_per_fold": d.tolist(), "p_value": ms.test["p"],
+                     "criterion": f"{n_folds}-fold time-block CV of one vs two {eff.name} modes (HMM predictive "
+                                  "from a filter memory earlier, held-out blocks), one-sided Wilcoxon signed-rank "
+                                  f"test, family-wise level {alpha:g} over {ms.n_tested} candidates"},
+        "explanation": (f"the dynamics switch between two modes ({len(ms.switch_times_s)} switch(es)): "
+                        f"{eff.label} on {where} of {modes[0]} and {modes[1]}; two modes cut the held-out error in "
+                        f"{int((d > 0).sum())} of {len(d)} time blocks.")}
+
+
+def disturbance_finding(disturbed: np.ndarray, spans: list, evidence: dict) -> dict:
+    """The ``external_disturbance`` finding: ``disturbed`` (T,) bool, ``spans`` in s."""
+    return {"effect": "external_disturbance", "joint": None,
+            "params": {"n_samples": int(disturbed.sum()), "fraction": float(disturbed.mean()), "spans_s": spans[:50]},
+            "evidence": evidence,
+            "explanation": f"{len(spans)} span(s) of unmodelled external force ({int(disturbed.sum())} "
+                           f"samples, {100 * disturbed.mean():.1f}% of the log) were found and left out "
+                           "of the effect fitting."}
+
+
+@dataclass
+class DiagnosisResult:
+    """Findings (CONTRACT section 2), held-out fit per stage, residual locations.
+
+    ``findings``: list of dicts with ``effect``, ``joint`` or ``link``, ``params``, ``evidence``,
+    ``explanation``; ``fit``: {stage: {"nmse": {joint: value}, "mean_nmse": value}, "folds",
+    "samples_used", "samples_excluded_as_disturbed"}; ``location``: per joint, where the nominal
+    residual concentrates; ``labels``: per analysed sample {"t", "mode" (int), "disturbed"
+    (0/1)} when modes or pushes were found; ``plot_data``: arrays for the residual plots.
+    """
+
+    findings: list
+    fit: dict
+    location: dict
+    joint_names: list
+    info: dict = field(default_factory=dict)
+    plot_data: dict | None = field(default=None, repr=False)
+    labels: dict | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        return {"findings": self.findings, "fit": self.fit, "location": self.location, "info": self.info}
+
+    def to_json(self, indent: int = 2) -> str:
+        return json.dumps(jsonable(self.to_dict()), indent=indent)
+
+    def report_markdown(self) -> str:
+        effects = [f for f in self.findings if f["effect"] not in WHOLE_LOG]
+        lines = ["# Sim-vs-real diagnosis", ""]
+        if not effects:
+            lines.append("Nothing is missing: no candidate effect improves the held-out (time-block "
+                         "cross-validated) error significantly over the nominal model.")
+            lines += [""] * bool(self.findings) + [f"- {f['explanation']}" for f in self.findings]
+        else:
+            lines += ["## Findings", ""] + [f"- {f['explanation']}" for f in self.findings]
+        lines += ["", "## Held-out normalised MSE per joint (time-block cross-validation)", "",
+                  "| joint | " + " | ".join(STAGES) + " |", "|---|" + "---|" * len(STAGES)]
+        for jn in self.joint_names:
+            row = [f"{self.fit[s]['nmse'].get(jn, float('nan')):.4g}" if s in self.fit else "-" for s in STAGES]
+            lines.append(f"| {jn} | " + " | ".join(row) + " |")
+        lines += ["", "## Where the nominal residual concentrates", ""]
+        for jn, loc in self.location.items():
+            lines.append(f"- {jn}: residual RMS {loc['rms']:.3g} N*m ({100 * loc['fraction_of_torque_rms']:.1f}% "
+                         f"of the torque RMS); largest in {loc['where']} ({loc['ratio']:.2f}x the overall RMS)")
+        lines += ["", "## Method", "",
+                  f"Candidates: {self.info.get('n_candidates')} effects. Forward selection on {self.info.get('n_folds')} "
+                  "time blocks: an effect is added while its paired held-out gain is significant (one-sided "
+                  "Wilcoxon signed-rank test over the blocks, Bonferroni over the candidates of each step); "
+                  "parameters by non-negative least squares on all undisturbed samples, standard deviations by "
+                  "block jackknife over the folds. Coulomb friction uses tanh(dq/v_s), v_s = "
+                  f"{self.info.get('sign_noise_factor')} x velocity noise: "
+                  + ", ".join(f"{v:.3g}" for v in self.info.get("v_s", [])) + " rad/s.", ""]
+        if self.info.get("plots"):
+            lines += ["## Plots", ""] + [f"![{p}]({p})" for p in self.info["plots"]]
+        return "\n".join(lines) + "\n"
+
+    def write(self, out_dir) -> Path:
+        """Write ``findings.json``, ``report.md``, residual plots (with plot data) and (when modes
+        or pushes were found) ``labels.parquet`` (t, mode, disturbed per analysed sample)."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        doc = self
+        if self.plot_data is not None:
+            doc = DiagnosisResult(self.findings, self.fit, self.location, self.joint_names,
+                                  {**self.info, "plots": plot_residuals(self.plot_data, out)})
+        (out / "findings.json").write_text(doc.to_json())
+        if self.labels is not None:
+            import pandas as pd
+
+            from ..data.outputs import write_table
+
+            write_table(out / "labels.parquet", pd.DataFrame(self.labels))
+        (out / "report.md").write_text(doc.report_markdown())
+        return out
+
+
+def plot_residuals(d: dict, out: Path) -> list[str]:
+    """Per joint, residual before/after the found effects against dq, q and tau; PNG names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    T = d["q"].shape[0]
+    idx = np.linspace(0, T - 1, min(T, 3000)).astype(int)
+    for j, jn in enumerate(d["joint_names"]):
+        fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharey="row")
+        for row, (res, lab) in enumerate(((d["r_before"], "nominal"), (d["r_after"], "with physics"))):
+            for col, (x, xl) in enumerate(((d["dq"], "dq [rad/s]"), (d["q"], "q [rad]"), (d["tau"], "tau [N*m]"))):
+                ax = axes[row, col]
+                ax.plot(x[idx, j], res[idx, j], ".", ms=1.5, alpha=0.5, rasterized=True)
+                ax.axhline(0, color="k", lw=0.5)
+                ax.set_xlabel(xl)
+                if col == 0:
+                    ax.set_ylabel(f"residual, {lab} [N*m]")
+        fig.suptitle(f"{jn}: residual before / after the found effects")
+        fig.tight_layout()
+        name = f"residual_{j}_{jn}.png".replace("/", "_")
+        fig.savefig(out / name, dpi=80)
+        plt.close(fig)
+        names.append(name)
+    return names

@@ -1,0 +1,229 @@
+"""Choosing effects: forward selection on time-block cross-validation.
+
+:class:`FoldGrams` holds the sufficient statistics of weighted least squares per fold and joint,
+so that any subset of atom columns is fitted and scored on held-out blocks without touching the
+samples again. :class:`ForwardCVSelector` adds effects one at a time while the best candidate's
+paired held-out gain over the folds is significant (one-sided Wilcoxon signed-rank test,
+Bonferroni over the candidates of the step); physical admissibility is the effects' own.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from sklearn.base import BaseEstimator
+
+from ..models.robust import solve_gram
+
+
+def time_folds(T: int, K: int, t: np.ndarray, f_c: float | None):
+    """K contiguous time blocks of ``T`` samples (``mmgp.data.folds.time_block_folds``) with a
+    gap of the low-pass filter's memory (two periods of the cutoff ``f_c`` Hz) plus a
+    differentiator window each side, so a held-out block shares no filtered noise with training."""
+    from ..data.folds import time_block_folds
+
+    gap_s = 0.05 + (2.0 / f_c if f_c else 0.0)
+    gap = int(max(0, round(gap_s / max(float(np.median(np.diff(t))), 1e-9))))
+    return time_block_folds(T, K, gap=min(gap, T // (4 * K)))
+
+
+def signed_rank_p(d: np.ndarray) -> float:
+    """One-sided p-value of "the paired fold differences ``d`` (K,) are centred above zero":
+    Wilcoxon signed-rank test (exact for small K). Distribution-free: a real effect's gain
+    varies a lot between time blocks (fast motion in some, slow in others), which makes a
+    t test weak, but it is positive in nearly every block."""
+    from scipy.stats import wilcoxon
+
+    d = np.asarray(d, dtype=np.float64)
+    scale = np.abs(d).max() if d.size else 0.0
+    d = d[np.abs(d) > 1e-12 * scale] if scale > 0 else d[:0]
+    if len(d) < 2:
+        return 1.0
+    return float(wilcoxon(d, alternative="greater").pvalue)
+
+
+def _weighted_sums(Aw: np.ndarray, rw: np.ndarray, sw: np.ndarray, idx: np.ndarray):
+    """Per joint over samples ``idx``: Gram (n, P, P), cross term (n, P), sum of squares (n,) and
+    number of samples with non-zero weight (n,). ``Aw`` (n, T, P), ``rw`` (n, T) weighted."""
+    n, _, P = Aw.shape
+    G, c, y, m = np.empty((n, P, P)), np.empty((n, P)), np.empty(n), np.empty(n)
+    for j in range(n):
+        Aj = Aw[j, idx]
+        rj = rw[j, idx]
+        G[j] = Aj.T @ Aj
+        c[j] = Aj.T @ rj
+        y[j] = rj @ rj
+        m[j] = (sw[idx, j] > 0).sum()
+    return G, c, y, m
+
+
+class FoldGrams:
+    """Sufficient statistics of weighted least squares per fold and joint.
+
+    ``A``: (T, n, P) atom columns, ``r``: (T, n) residual, ``use``: (T,) bool samples to use,
+    ``folds``: list of (train_idx, test_idx), ``W``: optional (T, n) non-negative weights per
+    sample and joint. Stores the all-data Gram ``Gall`` (n, P, P) and cross term ``call`` (n, P),
+    per fold the training part's ``Gtr``/``ctr`` and the test block's ``Gte``/``cte``, its sum
+    of squares ``yte`` (K, n) and test-sample counts per joint ``nte`` (K, n).
+    """
+
+    def __init__(self, A: np.ndarray, r: np.ndarray, use: np.ndarray, folds, W: np.ndarray | None = None):
+        T, n, P = A.shape
+        K = len(folds)
+        self.K, self.n, self.P = K, n, P
+        # per-sample, per-joint weights (0 drops a joint's equation at that sample)
+        sw = np.ones((T, n)) if W is None else np.sqrt(np.asarray(W, dtype=np.float64))
+        # per joint, weighted and contiguous in time: the fold sums below slice rows only
+        Aw = np.ascontiguousarray(np.transpose(A * sw[:, :, None], (1, 0, 2)))
+        rw = np.ascontiguousarray((r * sw).T)
+        self.Gall, self.call, _, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(use))
+        self.Gte = np.zeros((K, n, P, P))
+        self.cte = np.zeros((K, n, P))
+        self.yte = np.zeros((K, n))
+        self.Gtr = np.zeros((K, n, P, P))
+        self.ctr = np.zeros((K, n, P))
+        self.nte = np.zeros((K, n))
+        for k, (tr, te) in enumerate(folds):
+            self.Gte[k], self.cte[k], self.yte[k], self.nte[k] = _weighted_sums(Aw, rw, sw, te[use[te]])
+            # train = all minus (test block and the gaps around it): only the short excluded
+            # stretch is summed, so K folds cost about two full Gram matrices
+            excl = np.ones(T, bool)
+            excl[tr] = False
+            Ge, ce, _, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(excl & use))
+            self.Gtr[k], self.ctr[k] = self.Gall - Ge, self.call - ce
+
+    def normal_equations(self, S: Sequence[int], w: np.ndarray, fold: int | None = None):
+        """Joint-weighted normal equations (G (|S|, |S|), c (|S|,)) of atoms ``S`` on all data
+        or on a fold's training part; ``w`` (n,) joint weights."""
+        S = list(S)
+        G, c = (self.Gall, self.call) if fold is None else (self.Gtr[fold], self.ctr[fold])
+        return np.einsum("j,jpq->pq", w, G[:, S][:, :, S]), np.einsum("j,jp->p", w, c[:, S])
+
+    def fit(self, S: Sequence[int], w: np.ndarray, fold: int | None = None) -> np.ndarray:
+        """Weighted LS coefficients of atoms ``S`` on all data or on a fold's training part."""
+        if not len(S):
+            return np.zeros(0)
+        return solve_gram(*self.normal_equations(S, w, fold))
+
+    def cv_errors(self, S: Sequence[int], w: np.ndarray) -> np.ndarray:
+        """Held-out sum of squared errors (K, n) of the model with atoms ``S``."""
+        S = list(S)
+        err = self.yte.copy()
+        if not S:
+            return err
+        for k in range(self.K):
+            th = self.fit(S, w, k)
+            Gs = self.Gte[k][:, S][:, :, S]
+            cs = self.cte[k][:, S]
+            err[k] = self.yte[k] - 2 * cs @ th + np.einsum("p,jpq,q->j", th, Gs, th)
+        return err
+
+
+def atom_indices(effects, index: dict) -> list[int]:
+    """Column indices (``index``: atom key -> column) of the atoms of ``effects``, each once."""
+    S: list[int] = []
+    for e in effects:
+        for a in e.atoms():
+            if index[a] not in S:
+                S.append(index[a])
+    return S
+
+
+@dataclass
+class PathStep:
+    effects: list  # list[Effect]
+    cv_mean: float
+    cv_folds: np.ndarray
+
+
+@dataclass
+class _Candidate:
+    cv_mean: float
+    effect: object
+    cv_folds: np.ndarray
+    p_value: float
+
+
+class ForwardCVSelector(BaseEstimator):
+    """Forward selection of effects with time-block CV and a multiplicity-corrected paired test.
+
+    At each step every admissible candidate (one not yet chosen, whose model with the chosen
+    effects is physically admissible on the full-data fit: ``Effect.admissible``) is scored by
+    the paired held-out differences ``d_k`` (weighted squared error of the current model minus
+    that of the current model plus the candidate, fold k). A candidate qualifies when the
+    one-sided Wilcoxon signed-rank p-value of ``d`` is below ``alpha / m`` (Bonferroni over the
+    ``m`` candidates tried at that step: the best of many noise columns would otherwise look
+    significant by chance). The qualifying candidate with the smallest held-out error is added;
+    the search stops when none qualifies or after ``max_steps`` effects (None: no limit).
+
+    ``fit(effects, keys, grams, w, ctx)``: ``effects`` the candidate list, ``keys`` the atom keys
+    indexing the Gram matrices, ``w`` (n,) joint weights (inverse noise variance), ``ctx`` the
+    Context the effects judge admissibility in. Learned: ``path_`` (list of PathStep),
+    ``chosen_step_``, ``selected_`` (effects), ``p_values_`` (signed-rank p-value of each added
+    effect's gain, in order).
+    """
+
+    def __init__(self, alpha: float = 0.05, max_steps: int | None = None):
+        self.alpha = alpha
+        self.max_steps = max_steps
+
+    def _candidates(self, effects, chosen, keys, index, grams, w, ctx, cur) -> list[_Candidate]:
+        S0 = atom_indices(chosen, index)
+        out = []
+        for e in effects:
+            if e in chosen:
+                continue
+            new = [index[a] for a in e.atoms() if index[a] not in S0]
+            if not new:
+                continue  # nested in what is already chosen (e.g. Coulomb inside load-dependent)
+            if any(not any(o.name == req and o.index == e.index for o in chosen) for req in e.requires):
+                continue
+            S = S0 + new
+            coef = dict(zip((keys[i] for i in S), grams.fit(S, w)))
+            if not all(o.admissible(coef, ctx) for o in chosen + [e]):
+                continue
+            ef = grams.cv_errors(S, w) @ w
+            out.append(_Candidate(float(ef.mean()), e, ef, signed_rank_p(cur - ef)))
+        return out
+
+    @staticmethod
+    def _pick(ok: list[_Candidate], crit: float, cur: np.ndarray, K: int) -> _Candidate:
+        best = min(ok, key=lambda c: c.cv_mean)
+        e = best.effect
+        if e.supersedes:
+            # nested look-alikes (a spring contains an offset): keep the smaller effect when it
+            # qualifies on its own and the larger is not significantly better
+            for c in ok:
+                if c.effect.index == e.index and c.effect.name in e.supersedes and \
+                        signed_rank_p(c.cv_folds - best.cv_folds) >= crit:
+                    return c
+        if e.distal_tiebreak:
+            # among indices the data cannot tell apart (held-out error within one standard error
+            # of the best one's gain: the classic 1-SE rule), report the most distal
+            se = np.std(cur - best.cv_folds, ddof=1) / np.sqrt(K)
+            for c in sorted(ok, key=lambda c: -c.effect.index):
+                if type(c.effect) is type(e) and c.effect.index > e.index and c.cv_mean - best.cv_mean <= se:
+                    return c
+        return best
+
+    def fit(self, effects, keys, grams: FoldGrams, w: np.ndarray, ctx) -> "ForwardCVSelector":
+        index = {a: i for i, a in enumerate(keys)}
+        e0 = grams.cv_errors([], w) @ w
+        path = [PathStep([], float(e0.mean()), e0)]
+        p_values = []
+        max_steps = self.max_steps or len(effects)
+        while len(path) - 1 < max_steps:
+            cand = self._candidates(effects, path[-1].effects, keys, index, grams, w, ctx, path[-1].cv_folds)
+            crit = self.alpha / max(len(cand), 1)
+            ok = [c for c in cand if c.p_value < crit]
+            if not ok:
+                break
+            c = self._pick(ok, crit, path[-1].cv_folds, grams.K)
+            p_values.append(c.p_value)
+            path.append(PathStep(path[-1].effects + [c.effect], c.cv_mean, c.cv_folds))
+        self.path_ = path
+        self.chosen_step_ = len(path) - 1
+        self.selected_ = list(path[-1].effects)
+        self.p_values_ = p_values
+        return self

@@ -1,0 +1,187 @@
+"""Separating pushes from physics: which samples an external force disturbed.
+
+Two detectors and how they combine:
+
+* :func:`scan_disturbances`: a chi-square scan of the (low-passed) residual that the selected
+  physics leaves, at a family-wise false-alarm level over the log's independent samples.
+* :func:`em_separate`: the multimodal learner (``mmgp.models.sem.MultimodalSEM``, disturbance mode
+  on), which explains the state-dependent part of the residual by a GP rather than by the effect
+  library.
+* :func:`gate_spans`: a scanned span is kept when the learner also flags some of it, or when the
+  scan's statistic peaks far above its threshold (the learner's GP can absorb part of a long
+  push).
+
+:func:`valid_mask` says which equations carry information at all (a joint at rest is left out).
+"""
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import numpy as np
+
+#: the ``separate`` setting of the Diagnoser: method name -> what it does (as reported)
+SEPARATION_METHODS = {
+    "auto": "robust chi-square scan, each span confirmed by MultimodalSEM (p_disturbed > 0.5 in it)",
+    "scan": "robust chi-square scan",
+    "em": "MultimodalSEM (p_disturbed > 0.5)",
+    "none": "none",
+}
+
+
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Half-open index ranges [a, b) of the True stretches of ``mask`` (T,)."""
+    d = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def spans_of(mask: np.ndarray, t: np.ndarray) -> list[tuple[float, float]]:
+    """(start, end) times in s of the True stretches of ``mask``."""
+    return [(float(t[a]), float(t[b - 1])) for a, b in runs(mask)]
+
+
+def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None, *, factor: float = 1.0) -> np.ndarray:
+    """(T, n) 1.0 where joint j's equation carries information a state function can fit, else 0.
+
+    A joint whose velocity is within ``factor * v_s`` of zero (``v_s`` = 3 velocity-noise
+    standard deviations) may be stuck: static friction then takes whatever value in
+    [-tau_c, tau_c] balances the other torques, set-valued rather than a function of (q, dq, ddq).
+    Those samples would otherwise be soaked up by look-alike effects (spring, armature, offset)
+    or flagged as pushes. The mask is widened by the low-pass filter's memory (half a cutoff
+    period each side), since filtering spreads those values over neighbouring samples.
+    """
+    T, n = dq.shape
+    rest = np.abs(dq) < factor * np.asarray(v_s)[None, :]
+    if f_c:
+        dt = float(np.median(np.diff(t)))
+        h = int(round(0.5 / (f_c * dt)))
+        if h > 0:
+            from scipy.ndimage import maximum_filter1d
+
+            rest = maximum_filter1d(rest.astype(np.uint8), size=2 * h + 1, axis=0) > 0
+    M = (~rest).astype(np.float64)
+    # a joint that is (almost) never moving keeps its samples: nothing would be left to fit
+    few = M.sum(0) < 0.1 * T
+    M[:, few] = 1.0
+    return M
+
+
+def _chi2_statistic(e: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sum over valid joints of the squared residual in robust (MAD) noise units, and the number
+    of valid joints, per sample."""
+    n = e.shape[1]
+    med = np.array([np.median(e[V[:, j], j]) if V[:, j].any() else 0.0 for j in range(n)])
+    s = np.array([1.4826 * np.median(np.abs(e[V[:, j], j] - med[j])) if V[:, j].any() else 1.0
+                  for j in range(n)]) + 1e-300
+    return ((((e - med) / s) ** 2) * V).sum(1), V.sum(1)
+
+
+def _drop_unresolved(mask: np.ndarray, t: np.ndarray, f_c: float) -> np.ndarray:
+    """After a zero-phase low-pass at f_c any real event, however brief, stays above the noise
+    band for at least the filter's resolution (~ half a cutoff period); a shorter excursion is a
+    marginal crossing of heavy-tailed misfit, not a resolved push."""
+    out = mask.copy()
+    for a, b in runs(mask):
+        if t[b - 1] - t[a] < 0.5 / f_c:
+            out[a:b] = False
+    return out
+
+
+def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None, alpha: float = 0.01,
+                      valid: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Flag samples where the (low-passed) residual ``e`` (T, n) N*m is too large to be noise.
+
+    Each joint is scaled by a robust (MAD) noise level; the sum of squares over joints is
+    chi-square(n) under "no push" (filtering makes the residual close to Gaussian). The threshold
+    is the chi-square quantile at the Bonferroni level ``alpha / T_eff``, with ``T_eff`` the
+    number of independent samples the filter leaves (``2 f_c`` per second). Flagged stretches are
+    widened to where the statistic returns to its 99% noise band. ``valid`` (T, n) bool: joint
+    equations to use. Returns the mask (T,) and {"threshold", "peaks" (per span, in units of the
+    threshold), "effective_samples", "spans" (s)}.
+    """
+    from scipy.stats import chi2
+
+    T, n = e.shape
+    V = np.ones((T, n), bool) if valid is None else np.asarray(valid, bool)
+    z2, df = _chi2_statistic(e, V)
+    dur = float(t[-1] - t[0]) if T > 1 else 1.0
+    T_eff = max(1.0, min(T, 2.0 * f_c * dur)) if f_c else float(T)
+    thr_df = np.array([chi2.ppf(1 - alpha / T_eff, d) if d > 0 else np.inf for d in range(n + 1)])
+    thr = float(thr_df[n])
+    core = z2 > thr_df[df]
+    z2 = z2 * thr / thr_df[np.maximum(df, 1)]  # on the full-df scale for the widening and peaks
+    if f_c:
+        # within a cutoff period of the ends the zero-phase filter runs on padding, not data
+        core &= ~((t - t[0] < 1.0 / f_c) | (t[-1] - t < 1.0 / f_c))
+    mask = core.copy()
+    if core.any():
+        for a, b in runs(z2 > chi2.ppf(0.99, n)):
+            if core[a:b].any():
+                mask[a:b] = True
+        if f_c:
+            mask = _drop_unresolved(mask, t, f_c)
+    peaks = [float(z2[a:b].max() / thr) for a, b in runs(mask)]
+    return mask, {"threshold": thr, "peaks": peaks, "effective_samples": T_eff, "spans": spans_of(mask, t)}
+
+
+def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, t: np.ndarray, *,
+                n_modes: int = 1, max_points: int = 500, seed: int = 0, **sem_kw) -> dict:
+    """The multimodal learner's separation: ``MultimodalSEM`` (disturbance mode on) on the
+    nominal residual ``resid = tau - tau_rbd`` (T, n), N*m, with GP inputs
+    ``[q, dq, ddq, tanh(dq / v_s)]`` (v_s as in training, ``friction_velocity_scale``: without
+    the smooth sign a GP cannot follow the friction jump at velocity reversals and would take it
+    for pushes), on at most ``max_points`` samples evenly spaced in time (``t`` in s is passed, so
+    likelihoods leave a window out and a long push is not explained by itself).
+
+    Returns {"p_disturbed": (T,) posterior push probability interpolated in time to every sample,
+    "mode": (T,) int mode labels (nearest subsample), "sigma_d": (n,), "n_modes", "n_points",
+    "seconds", "n_sweeps"}. ``sem_kw`` overrides MultimodalSEM settings.
+    """
+    from ..models.features import friction_velocity_scale
+    from ..models.sem import MultimodalSEM
+
+    T, n = resid.shape
+    idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
+    vs = friction_velocity_scale(dq)
+    X = np.concatenate([q, dq, ddq, np.tanh(dq / vs)], axis=1)[idx]
+    # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
+    # sweeps (about 10 s on a 7-DOF log on one core)
+    kw = dict(max_support=min(250, len(idx)), fit_points=min(200, len(idx)), fit_iter=15, max_sweeps=8,
+              min_sweeps=4, average_last=3, final_support=min(250, len(idx)))
+    kw.update(sem_kw)
+    t0 = time.perf_counter()
+    sem = MultimodalSEM(n_modes=n_modes, disturbance=True, seed=seed, **kw).fit(X, resid[idx], t=t[idx])
+    p = np.interp(t, t[idx], sem.p_disturbed_)
+    near = np.clip(np.searchsorted(t[idx], t), 0, len(idx) - 1)
+    return {"p_disturbed": p, "mode": sem.labels_[near].astype(int), "sigma_d": np.asarray(sem.sigma_d_),
+            "n_modes": n_modes, "n_points": int(len(idx)), "seconds": time.perf_counter() - t0,
+            "n_sweeps": int(sem.n_sweeps_)}
+
+
+def em_summary(em: dict) -> dict:
+    """What the separation reports about a learner run."""
+    return {"em_points": em["n_points"], "em_seconds": float(em["seconds"]),
+            "em_sweeps": em["n_sweeps"], "em_flagged_fraction": float((em["p_disturbed"] > 0.5).mean()),
+            "em_sigma_d": [float(x) for x in em["sigma_d"]], "em_modes": em["n_modes"]}
+
+
+def gate_spans(scan: np.ndarray, p_disturbed: np.ndarray, peaks: Sequence[float] | None = None,
+               strong: float = np.inf) -> tuple[np.ndarray, dict]:
+    """The scan's flags ``scan`` (T,) bool, gated by the learner's ``p_disturbed`` (T,).
+
+    A scanned span stays if its scan statistic peaks at ``strong`` times the threshold or more
+    (``peaks``: one per span of ``scan``, in units of the threshold), or if the learner also
+    calls some of it disturbed (p > 0.5). Strong spans need no confirmation: the learner's GP can
+    absorb part of a long push and miss it (benchmark: a 1.2 s push at 15x the threshold).
+    Returns the gated mask and {"spans_dropped_by_em"}.
+    """
+    em = np.asarray(p_disturbed) > 0.5
+    out = scan.copy()
+    dropped = 0
+    spans = runs(scan)
+    pk = np.zeros(len(spans)) if peaks is None else np.asarray(peaks, dtype=np.float64)
+    for (a, b), peak in zip(spans, pk):
+        if peak < strong and not em[a:b].any():
+            out[a:b] = False
+            dropped += 1
+    return out, {"spans_dropped_by_em": dropped}

@@ -1,0 +1,578 @@
+"""The public estimator: :class:`MultimodalGP` (logs -> modes, disturbance labels, per-mode GPs).
+
+It is the one way to train: ``mmgp train`` parses its options into the constructor and calls
+``fit``, so Python and the command line give the same labels for the same inputs.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from sklearn.base import BaseEstimator
+from sklearn.utils.validation import check_is_fitted
+
+from ._version import __version__
+from .data.logs import MIN_SAMPLES, RobotLog
+from .errors import InputError
+from .gp.hyper import Hyper
+from .gp.sparse import GP_METHODS, gp_kind, make_gp
+from .models.features import (build_features, friction_velocity_scale, load_logs, resolve_mean_basis,
+                              state_features)
+from .models.report import training_report
+
+MODEL_FORMAT = "mmgp-model"
+MODEL_VERSION = 3
+_CHOICES = {"estep": ("ffbs", "gibbs"), "semiparametric": ("residual", "feature", "none"),
+            "mean_basis": ("auto", "rbd", "payload", "none"), "objective": ("loo", "marginal"),
+            "gp_method": GP_METHODS}
+_POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last",
+                 "patience", "n_inducing")
+_NON_NEGATIVE = ("exclusion_s", "block_s")
+_BOOL = ("disturbance", "friction_feature", "calibrate", "ard")
+
+
+class MultimodalGP(BaseEstimator):
+    """Multimodal Gaussian-process inverse dynamics tau = f(q, dq, ddq) from messy robot logs.
+
+    Stochastic EM over ``n_modes`` dynamic modes (e.g. payloads) and a disturbance mode (pushes),
+    with one RBF GP per mode over ``[q, dq, ddq, tanh(dq / v_s)]``; every training sample
+    gets a mode and a disturbance label. Units: rad (m), rad/s, rad/s^2, N*m (N), s.
+
+    One mode without the disturbance mode has no labels to learn: the EM is skipped and one GP
+    is fitted on every sample, its hyperparameters by ``objective`` on ``fit_points`` random
+    samples (:class:`mmgp.gp.exact.ExactGP`'s procedure). How the GPs scale: ``gp_method``.
+
+    Parameters (every training setting; the ``train:`` section of a settings file holds the same
+    keys, see :func:`mmgp.config.load_settings`)
+    ----------
+    n_modes : int >= 1 or "auto", default 1
+        Dynamic modes; "auto" picks 1, 2 or 3 by a BIC-style score on the chain's log marginal.
+    disturbance : bool, default True
+        Add the disturbance mode N(mu, Sigma + Sigma_d) around each sample's mode.
+    robot : None, str or RobotModel, default None
+        The rigid-body model: an example-robot-data name (e.g. "panda"), a URDF path (ends in
+        ".urdf") or a :class:`mmgp.RobotModel`. None: the one the first log's metadata names,
+        if any (GP only otherwise, and always for arrays).
+    estep : "ffbs" or "gibbs", default "ffbs"
+        Joint forward-filtering backward-sampling of the labels, or single-site Gibbs.
+    stay_prob : float in (0, 1) or None, default None
+        Fixed p(mode_t = mode_{t-1}); None learns it (Beta prior, mean 0.95).
+    rate_hz : float > 0 or None, default None
+        Downsample to about this rate after differentiating (None keeps the log's rate).
+    diff_window_s : float or None, default None
+        Savitzky-Golay window for estimated dq / ddq in s; None chooses it per joint by
+        leave-one-out cross-validation (between max(5 samples, 0.05 s) and 0.5 s).
+    semiparametric : "residual", "feature" or "none", default "residual"
+        With a robot: the GP learns tau - tau_rbd, or takes tau_rbd as an extra input, or
+        ignores the robot.
+    exclusion_s : float >= 0, default 1.0
+        Samples within this many seconds of a sample are left out of its likelihood
+        (leave-window-out; 0 = plain leave-one-out).
+    block_s : float >= 0, default 2.0
+        Block length in s of the leave-block-out hyperparameter objective (0: per-sample LOO).
+    friction_feature : bool, default True
+        Add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step); v_s is 5% of
+        the joint's 95th-percentile speed.
+    mean_basis : "auto", "payload", "rbd" or "none", default "auto"
+        With a robot and "residual": each mode's mean is linear in rigid-body regressors,
+        fitted robustly per mode, under its GP, so a mode extrapolates like physics. "payload"
+        (what "auto" picks with a robot): the distal body's 10 inertial parameters shared by
+        all joints; "rbd": every body's parameters per joint (also absorbed smooth pushes:
+        Panda seed 2 F1 0.82 vs 0.95). Without a robot "auto" is "none".
+    max_support : int, default 500
+        At most this many undisturbed samples condition each mode's GP during the sweeps.
+    final_support : int or None, default None
+        At most this many of a mode's undisturbed samples (random subset) condition its returned
+        GP (used by predict and the export); None: every one.
+    gp_method : "auto", "exact", "sgpr" or "subset", default "auto"
+        The returned GPs' kind. "auto" (:func:`mmgp.gp.sparse.choose_gp_method`): an exact GP
+        on every sample up to 16,000 samples per mode, when one output's kernel matrix and its
+        factor fit in a third of the free RAM (half the free GPU memory); SGPR over every sample
+        with ``n_inducing`` k-means inducing inputs above (O(N M^2) time, O(M^2) memory: the
+        path for 10^5+ samples on a GPU). Measured on the real Barrett WAM (12,000 training
+        rows, published test set, same hyperparameters): exact on all rows mean nMSE 0.022,
+        SGPR M=3,000 0.033, subset of data 3,000 0.058, at similar cost for the first two;
+        "subset" (exact GP on ``n_inducing`` random samples) is never picked by "auto".
+    n_inducing : int, default 2000
+        SGPR inducing inputs (or the subset size of "subset").
+    fit_points, fit_iter : int, default 2000, 50
+        Hyperparameter fitting subset size (random samples) and L-BFGS iterations. The sweeps
+        fit on their support (at most ``max_support``); one mode without disturbance fits on
+        ``fit_points`` of all samples, one optimiser run per joint. Real Barrett WAM, exact GP
+        on all 12,000 rows: 1,000 points, one joint run: mean test nMSE 0.022 (joint 7: 0.108).
+    max_sweeps, min_sweeps : int, default 40, 6
+        EM sweep limits.
+    tol_changed : float in (0, 1], default 0.05
+        Converged when, over the last ``patience`` sweeps, fewer than this fraction of the labels
+        change on average and the mean log joint stops rising (or fewer than a fifth change).
+    patience : int, default 3
+        Sweeps compared by the convergence test.
+    average_last : int, default 5
+        Sweeps after convergence whose posterior marginals are averaged into the labels.
+    mode_smoothing_s : float > 0, default 4.0
+        Running-median length in s of the residuals clustered into the initial modes.
+    calibrate : bool, default True
+        Scale each mode's predictive variance per joint by its undisturbed mean z^2 (>= 1).
+    objective : "loo" or "marginal", default "loo"
+        GP hyperparameter objective of standalone fits: one mode without disturbance, and the
+        EM without a time axis (the sweeps otherwise leave time blocks out).
+    ard : bool, default True
+        One lengthscale per input.
+    device : str, default "cpu"
+        torch device: "cpu", "cuda" or "auto".
+    seed : int, default 0
+        Seed of the stochastic EM (same seed and logs, same labels).
+    progress : callable or None, default None
+        Called with each sweep's :class:`mmgp.models.convergence.SweepRecord`.
+
+    Attributes (after ``fit``; ``load`` restores those marked *)
+    ----------
+    labels_ : DataFrame, the columns of ``labels.parquet`` (docs/contract.md): t, (log, with
+        several logs), mode, disturbed, p_disturbed, p_mode_<k>.
+    modes_ (T,) int, nominal mode 0; p_mode_ (T, K); p_disturbed_ (T,); disturbed_ (T,) bool.
+    report_ : dict, the content of ``report.json``.
+    n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
+    friction_scale_ * ((n,) v_s in rad/s, or None), basis_kind_ *, basis_coef_ * (per mode
+    (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
+    logs_ (the checked logs), features_ (GP inputs and targets), sem_ (the fitted
+    :class:`mmgp.models.sem.MultimodalSEM`, with its trace and last sweep).
+    """
+
+    def __init__(self, n_modes=1, disturbance=True, robot=None, *, estep="ffbs", stay_prob=None,
+                 rate_hz=None, diff_window_s=None, semiparametric="residual", exclusion_s=1.0, block_s=2.0,
+                 friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
+                 gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
+                 tol_changed=0.05, patience=3,
+                 average_last=5, mode_smoothing_s=4.0, calibrate=True, objective="loo", ard=True,
+                 device="cpu", seed=0, progress=None):
+        self.n_modes = n_modes
+        self.disturbance = disturbance
+        self.robot = robot
+        self.estep = estep
+        self.stay_prob = stay_prob
+        self.rate_hz = rate_hz
+        self.diff_window_s = diff_window_s
+        self.semiparametric = semiparametric
+        self.exclusion_s = exclusion_s
+        self.block_s = block_s
+        self.friction_feature = friction_feature
+        self.mean_basis = mean_basis
+        self.max_support = max_support
+        self.final_support = final_support
+        self.gp_method = gp_method
+        self.n_inducing = n_inducing
+        self.fit_points = fit_points
+        self.fit_iter = fit_iter
+        self.max_sweeps = max_sweeps
+        self.min_sweeps = min_sweeps
+        self.tol_changed = tol_changed
+        self.patience = patience
+        self.average_last = average_last
+        self.mode_smoothing_s = mode_smoothing_s
+        self.calibrate = calibrate
+        self.objective = objective
+        self.ard = ard
+        self.device = device
+        self.seed = seed
+        self.progress = progress
+
+    # -- settings ------------------------------------------------------------------------------
+    def _validate(self) -> None:
+        """Refuse a bad setting with an InputError naming it."""
+        def bad(key, expected):
+            raise InputError(f"setting '{key}': expected {expected}, got {getattr(self, key)!r}")
+
+        n = self.n_modes
+        if not (n == "auto" or (isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1)):
+            bad("n_modes", "a positive integer or 'auto'")
+        for key, choices in _CHOICES.items():
+            if getattr(self, key) not in choices:
+                bad(key, " or ".join(repr(c) for c in choices))
+        for key in _POSITIVE_INT:
+            v = getattr(self, key)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+                bad(key, "a positive integer")
+        for key in _NON_NEGATIVE:
+            if not _is_number(getattr(self, key)) or getattr(self, key) < 0:
+                bad(key, "a number of seconds >= 0")
+        for key in _BOOL:
+            if not isinstance(getattr(self, key), (bool, np.bool_)):
+                bad(key, "true or false")
+        if self.final_support is not None and not (isinstance(self.final_support, (int, np.integer))
+                                                   and not isinstance(self.final_support, bool)
+                                                   and self.final_support >= 1):
+            bad("final_support", "a positive integer, or null (every sample)")
+        if self.stay_prob is not None and not (_is_number(self.stay_prob) and 0.0 < self.stay_prob < 1.0):
+            bad("stay_prob", "a probability strictly between 0 and 1, or null")
+        if self.rate_hz is not None and not (_is_number(self.rate_hz) and self.rate_hz > 0):
+            bad("rate_hz", "a positive rate in Hz, or null")
+        if self.diff_window_s is not None and not (_is_number(self.diff_window_s) and self.diff_window_s > 0):
+            bad("diff_window_s", "a positive window in seconds, or null")
+        if not (_is_number(self.tol_changed) and 0.0 < self.tol_changed <= 1.0):
+            bad("tol_changed", "a fraction in (0, 1]")
+        if not (_is_number(self.mode_smoothing_s) and self.mode_smoothing_s > 0):
+            bad("mode_smoothing_s", "a positive number of seconds")
+        if not isinstance(self.seed, (int, np.integer)) or isinstance(self.seed, bool):
+            bad("seed", "an integer")
+        if self.progress is not None and not callable(self.progress):
+            bad("progress", "a function of a SweepRecord, or None")
+        from .gp.linalg import resolve_device
+
+        try:
+            resolve_device(self.device)
+        except (ValueError, RuntimeError, TypeError) as exc:
+            raise InputError(f"setting 'device': {exc}") from None
+
+    def _sem_settings(self, basis_kind: str | None) -> dict:
+        return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
+                    max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
+                    patience=self.patience, average_last=self.average_last, max_support=self.max_support,
+                    final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
+                    fit_points=self.fit_points, fit_iter=self.fit_iter,
+                    exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
+                    calibrate=self.calibrate, shared_basis=basis_kind == "payload", seed=self.seed,
+                    progress=self.progress,
+                    gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device})
+
+    def _settings_record(self) -> dict:
+        """The settings as JSON-able values (the robot as its name or URDF path; no progress)."""
+        out = self.get_params(deep=False)
+        out.pop("progress")
+        if out["robot"] is not None and not isinstance(out["robot"], (str, os.PathLike)):
+            spec = _robot_spec(out["robot"])
+            out["robot"] = spec["robot"] or spec["urdf"]
+        elif out["robot"] is not None:
+            out["robot"] = str(out["robot"])
+        return out
+
+    # -- fit -----------------------------------------------------------------------------------
+    def fit(self, logs=None, *, t=None, q=None, tau=None, dq=None, ddq=None) -> "MultimodalGP":
+        """Learn modes, disturbance labels and per-mode GPs.
+
+        ``logs``: a log file (Parquet or CSV, docs/contract.md), a :class:`mmgp.RobotLog`, or a
+        list of them (separate recordings of one robot). Or, instead, arrays of one recording:
+        ``t`` (T,) s, strictly increasing; ``q``, ``tau`` (T, n) (or (T,) for one joint);
+        ``dq``, ``ddq`` (T, n) or None (estimated from q). Inputs are never modified.
+        Returns self.
+        """
+        import time
+
+        from .models.sem import MultimodalSEM, select_n_modes
+
+        t0 = time.perf_counter()
+        self._validate()
+        sources = _sources(logs, t=t, q=q, tau=tau, dq=dq, ddq=ddq)
+        robot = _resolve_robot(self.robot, sources[0])
+        logs_ = load_logs(sources, robot=robot, diff_window_s=self.diff_window_s, rate_hz=self.rate_hz)
+        t_load = time.perf_counter() - t0
+        semi = self.semiparametric if robot is not None else "none"
+        fscale = (friction_velocity_scale(np.concatenate([lg.dq for lg in logs_]))
+                  if self.friction_feature else None)
+        basis_kind = resolve_mean_basis(self.mean_basis, robot, semi)
+        feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)
+        k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
+        if len(feats.Y) < 5 * k_max:
+            raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
+        kw = self._sem_settings(basis_kind)
+        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis)
+        if self.n_modes == "auto":
+            sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
+        else:
+            sem, selection = MultimodalSEM(n_modes=int(self.n_modes), **kw).fit(feats.X, feats.Y, **data), None
+        self.robot_, self.robot_spec_ = robot, _robot_spec(robot)
+        self.semiparametric_, self.basis_kind_, self.friction_scale_ = semi, basis_kind, fscale
+        self.joint_names_ = logs_[0].joint_names or (robot.joint_names if robot is not None else
+                                                     [f"joint_{j}" for j in range(logs_[0].n_joints)])
+        self._set_sem(sem)
+        self.logs_, self.features_ = logs_, feats
+        self.labels_ = _labels_frame(sem, logs_)
+        self.report_ = training_report(
+            settings=self._settings_record(), sem=sem, logs=logs_, joint_names=self.joint_names_,
+            robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind,
+            with_friction=fscale is not None, mode_selection=selection,
+            timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
+        return self
+
+    def _set_sem(self, sem) -> None:
+        self.sem_ = sem
+        self.n_modes_ = len(sem.gps_)
+        self.modes_ = sem.labels_
+        self.p_mode_ = sem.p_mode_
+        self.p_disturbed_ = sem.p_disturbed_
+        self.disturbed_ = sem.disturbed_
+        self.support_X_, self.support_Y_ = list(sem.support_X_), list(sem.support_Y_)
+        self.hypers_ = [g.hyper_ for g in sem.gps_]
+        self.basis_coef_ = list(sem.coef_)
+        self.gp_kinds_ = [gp_kind(g) for g in sem.gps_]
+        self.inducing_ = [getattr(g, "inducing_", None) for g in sem.gps_]
+        self._gps = list(sem.gps_)
+
+    # -- prediction ----------------------------------------------------------------------------
+    @property
+    def support_q_(self) -> np.ndarray:
+        """Positions (N, n) of the nominal mode's support samples (what the export fits on)."""
+        check_is_fitted(self, "support_X_")
+        return self.support_X_[0][:, : len(self.joint_names_)]
+
+    def gp(self, mode: int = 0):
+        """Mode ``mode``'s GP over the inputs [q, dq, ddq(, tanh(dq / v_s))(, tau_rbd)]: an
+        :class:`mmgp.gp.exact.ExactGP` or :class:`mmgp.gp.sparse.SparseGP` (``gp_kinds_``)."""
+        check_is_fitted(self, "support_X_")
+        if not isinstance(mode, (int, np.integer)) or not 0 <= mode < self.n_modes_:
+            raise InputError(f"mode must be in 0..{self.n_modes_ - 1}, got {mode!r}")
+        if not hasattr(self, "_gps"):
+            self._gps = [None] * self.n_modes_
+        if self._gps[mode] is None:
+            kind = self.gp_kinds_[mode]
+            gp = make_gp(len(self.support_Y_[mode]), method=kind, device=self.device, ard=self.ard, seed=self.seed,
+                         n_inducing=self.n_inducing, n_subset=self.n_inducing)
+            extra = {"inducing": self.inducing_[mode]} if kind == "sgpr" else {}
+            self._gps[mode] = gp.fit(self.support_X_[mode], self.support_Y_[mode], hyper=self.hypers_[mode],
+                                     optimise=False, **extra)
+        return self._gps[mode]
+
+    def predict(self, q, dq, ddq, mode: int = 0, return_std: bool = True):
+        """Torque mean and std (T, n) in N*m (N) in ``mode`` (0 = nominal) at q, dq, ddq (T, n)
+        (or (T,) for one joint, or (n,) for one sample); only the mean with ``return_std=False``.
+        With a robot the rigid-body part is included."""
+        mean, std = self._predict(q, dq, ddq, mode)
+        return (mean, std) if return_std else mean
+
+    def nominal_torque(self, q) -> np.ndarray:
+        """Position-only feedforward target tau(q, 0, 0) of the nominal mode: (T, n) -> (T, n).
+
+        With the friction input, the prediction is averaged over both sliding directions: at
+        rest the friction torque can be anywhere in its band, so the band's centre is what a
+        position-only feedforward should supply, and a moving log has data on both branches but
+        almost none at the sign's zero crossing (evaluating there extrapolated: 0.73 vs 0.17 N*m
+        static error on the replica lever)."""
+        z = np.zeros_like(self._states(q, "q"))
+        if self.friction_scale_ is None:
+            return self._predict(q, z, z, 0)[0]
+        # both branches in one prediction: a large exact GP factorises once per call
+        both = self._predict(np.vstack([q, q]), np.vstack([z, z]), np.vstack([z, z]), 0,
+                             friction_sign=np.repeat([1.0, -1.0], len(z))[:, None])[0]
+        return 0.5 * (both[:len(z)] + both[len(z):])
+
+    def _states(self, a, name: str) -> np.ndarray:
+        check_is_fitted(self, "support_X_")
+        n = len(self.joint_names_)
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim == 1:
+            a = a.reshape(-1, 1) if n == 1 else a.reshape(1, -1)
+        if a.ndim != 2 or a.shape[1] != n:
+            raise InputError(f"{name} must be (T, {n}) for this model's {n} joint(s), got shape {np.shape(a)}")
+        return a
+
+    def _predict(self, q, dq, ddq, mode, friction_sign=None):
+        q, dq, ddq = (self._states(a, name) for a, name in ((q, "q"), (dq, "dq"), (ddq, "ddq")))
+        if not (len(q) == len(dq) == len(ddq)):
+            raise InputError(f"q, dq, ddq must have the same number of rows, got {len(q)}, {len(dq)}, {len(ddq)}")
+        gp = self.gp(mode)
+        coef = self.basis_coef_[mode]
+        f = state_features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
+                      friction_scale=self.friction_scale_, friction_sign=friction_sign,
+                      basis_kind=self.basis_kind_ if coef is not None else None)
+        mean, std = gp.predict(f.X, include_noise=True)
+        mean, std = mean.reshape(len(q), -1), std.reshape(len(q), -1)
+        if coef is not None:
+            mean = mean + np.einsum("tjp,jp->tj", f.basis, coef)
+        if f.tau_rbd is not None and self.semiparametric_ == "residual":
+            mean = mean + f.tau_rbd
+        return mean, std
+
+    def to_compensator(self, max_support: int = 1000, seed: int = 0):
+        """The passive position-only feedforward tau_ff(q) = grad V(q) of the nominal mode, fitted
+        to :meth:`nominal_torque` on up to ``max_support`` support positions (random subset,
+        ``seed``). See :func:`mmgp.compensator.fit.compensator_from_model`."""
+        from .compensator.fit import compensator_from_model
+
+        check_is_fitted(self, "support_X_")
+        return compensator_from_model(self, max_support=max_support, seed=seed)
+
+    # -- persistence ---------------------------------------------------------------------------
+    def save(self, out_dir: str | os.PathLike) -> None:
+        """Write ``model.npz`` (per mode ``X_k``, ``Y_k`` support, ``lengthscale_k``,
+        ``signal_var_k``, ``noise_var_k``, optional ``basis_coef_k`` and ``inducing_k`` (SGPR
+        inducing inputs), ``friction_scale``) and ``model.json`` (format, version, settings,
+        robot, joints, ``gp_kinds``) into ``out_dir`` (created)."""
+        import io
+
+        from .data.outputs import atomic_write_bytes
+
+        check_is_fitted(self, "support_X_")
+        arrays = {}
+        for k in range(self.n_modes_):
+            arrays[f"X_{k}"], arrays[f"Y_{k}"] = self.support_X_[k], self.support_Y_[k]
+            arrays[f"lengthscale_{k}"] = self.hypers_[k].lengthscale
+            arrays[f"signal_var_{k}"] = self.hypers_[k].signal_var
+            arrays[f"noise_var_{k}"] = self.hypers_[k].noise_var
+            if self.basis_coef_[k] is not None:
+                arrays[f"basis_coef_{k}"] = self.basis_coef_[k]
+            if self.inducing_[k] is not None:
+                arrays[f"inducing_{k}"] = self.inducing_[k]
+        if self.friction_scale_ is not None:
+            arrays["friction_scale"] = self.friction_scale_
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
+                "n_modes": self.n_modes_, "joint_names": self.joint_names_, "settings": self._settings_record(),
+                "robot": self.robot_spec_, "mean_basis": self.basis_kind_, "gp_kinds": self.gp_kinds_}
+        out_dir = Path(out_dir)
+        atomic_write_bytes(out_dir / "model.npz", buf.getvalue())
+        atomic_write_bytes(out_dir / "model.json", json.dumps(meta, indent=2).encode())
+
+    @classmethod
+    def load(cls, model_dir: str | os.PathLike) -> "MultimodalGP":
+        """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
+        format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
+        are not restored."""
+        model_dir = Path(model_dir)
+        meta = _read_meta(model_dir)
+        model = cls(**meta["settings"])
+        K = model.n_modes_ = int(meta["n_modes"])
+        model.joint_names_ = list(meta["joint_names"])
+        with np.load(model_dir / "model.npz") as z:
+            model.support_X_ = [z[f"X_{k}"] for k in range(K)]
+            model.support_Y_ = [z[f"Y_{k}"] for k in range(K)]
+            model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"])
+                             for k in range(K)]
+            model.basis_coef_ = [z[f"basis_coef_{k}"] if f"basis_coef_{k}" in z.files else None for k in range(K)]
+            model.friction_scale_ = z["friction_scale"] if "friction_scale" in z.files else None
+            model.inducing_ = [z[f"inducing_{k}"] if f"inducing_{k}" in z.files else None for k in range(K)]
+        # versions 1 and 2 conditioned every mode's exact GP on its (subset) support
+        model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
+        model.basis_kind_ = meta.get("mean_basis")
+        model.robot_spec_ = meta.get("robot") or None
+        model.robot_ = _robot_from_spec(model.robot_spec_)
+        model.semiparametric_ = model.semiparametric if model.robot_spec_ else "none"
+        model._gps = [None] * K
+        return model
+
+
+def _read_meta(model_dir: Path) -> dict:
+    """model.json, its settings under "settings" whatever the version."""
+    path = model_dir / "model.json"
+    if not path.is_file():
+        raise InputError("not a trained model folder (model.json missing; run 'mmgp train' first)", file=model_dir)
+    try:
+        meta = json.loads(path.read_text())
+    except ValueError as exc:
+        raise InputError(f"model.json is not valid JSON ({exc})", file=path) from None
+    version = meta.get("version") if isinstance(meta, dict) else None
+    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT or version not in (1, 2, MODEL_VERSION):
+        raise InputError(f"unsupported model format {meta.get('format') if isinstance(meta, dict) else None} "
+                         f"v{version} (this mmgp reads {MODEL_FORMAT} v1-v{MODEL_VERSION})", file=path)
+    if version == 1:
+        # v1 kept the settings of the former TrainConfig under "config"; "modes" is now n_modes.
+        settings = dict(meta.pop("config"))
+        settings["n_modes"] = settings.pop("modes")
+        spec = meta.get("robot") or {}
+        settings["robot"] = spec.get("robot") or spec.get("urdf")
+        meta["settings"] = settings
+    if not (model_dir / "model.npz").is_file():
+        raise InputError("model.npz missing", file=model_dir)
+    return meta
+
+
+# ----------------------------------------------------------------------------------------------
+# Inputs
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and np.isfinite(x)
+
+
+def _sources(logs, **arrays) -> list:
+    given = {k: v for k, v in arrays.items() if v is not None}
+    if logs is not None and given:
+        raise InputError("give either logs or arrays (t, q, tau, ...), not both")
+    if logs is None:
+        if not given:
+            raise InputError("nothing to fit: give a log path, a RobotLog, a list of them, or t, q, tau arrays")
+        return [_log_from_arrays(**arrays)]
+    items = list(logs) if isinstance(logs, (list, tuple)) else [logs]
+    if not items:
+        raise InputError("no logs given")
+    for x in items:
+        if not isinstance(x, (str, os.PathLike, RobotLog)):
+            raise InputError(f"a log must be a path or a RobotLog, got {type(x).__name__}")
+    return items
+
+
+def _log_from_arrays(t, q, tau, dq=None, ddq=None) -> RobotLog:
+    """A checked RobotLog from arrays (copies), each bad one named."""
+    if t is None or q is None or tau is None:
+        raise InputError("arrays need at least t, q and tau")
+    t = np.array(t, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"t must be (T,), got shape {t.shape}", column="t")
+    T = len(t)
+    out = {}
+    for name, a in (("q", q), ("tau", tau), ("dq", dq), ("ddq", ddq)):
+        if a is None:
+            out[name] = None
+            continue
+        a = np.array(a, dtype=np.float64)
+        a = a.reshape(-1, 1) if a.ndim == 1 else a
+        n = out["q"].shape[1] if name != "q" else a.shape[1]
+        if a.ndim != 2 or a.shape != (T, n):
+            raise InputError(f"{name} must be (T, n) = ({T}, {n}) like t and q, got shape {a.shape}", column=name)
+        out[name] = a
+    if T < MIN_SAMPLES:
+        raise InputError(f"too few samples: {T}, at least {MIN_SAMPLES} needed", row=T)
+    for name, a in [("t", t)] + [(k, v) for k, v in out.items() if v is not None]:
+        bad = ~np.isfinite(a.reshape(T, -1)).all(1)
+        if bad.any():
+            raise InputError("NaN or inf", column=name, row=int(np.flatnonzero(bad)[0]))
+    step = np.diff(t) <= 0
+    if step.any():
+        raise InputError("t must be strictly increasing", column="t", row=int(np.flatnonzero(step)[0]) + 1)
+    return RobotLog(path="<arrays>", t=t, q=out["q"], tau=out["tau"], dq=out["dq"], ddq=out["ddq"])
+
+
+def _resolve_robot(robot, first):
+    """The RobotModel to use: ``robot`` (name, URDF path or model), else the first log's metadata."""
+    if robot is not None and not isinstance(robot, (str, os.PathLike)):
+        if not hasattr(robot, "rnea") or not hasattr(robot, "joint_names"):
+            raise InputError(f"setting 'robot': expected a name, a URDF path or a RobotModel, got {robot!r}")
+        return robot
+    from .physics.robot import load_robot
+
+    log_path = None if getattr(first, "path", None) == "<arrays>" else first
+    if robot is None:
+        return load_robot(log_path=log_path) if log_path is not None else None
+    if isinstance(robot, os.PathLike) or str(robot).lower().endswith(".urdf"):
+        return load_robot(urdf=robot, log_path=log_path)
+    return load_robot(robot=str(robot), log_path=log_path)
+
+
+def _robot_spec(robot) -> dict | None:
+    if robot is None:
+        return None
+    name = getattr(robot, "name", None)
+    return {"robot": name, "urdf": None if name else str(robot.urdf_path), "joint_names": robot.joint_names}
+
+
+def _robot_from_spec(spec):
+    if not spec:
+        return None
+    from .physics.robot import load_robot
+
+    return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
+
+
+def _labels_frame(sem, logs: Sequence[RobotLog]):
+    """The contract's labels table: t, (log), mode, disturbed, p_disturbed, p_mode_<k>."""
+    import pandas as pd
+
+    t = np.concatenate([lg.t for lg in logs])
+    df = pd.DataFrame({"t": t, "mode": sem.labels_.astype(np.int64),
+                       "disturbed": sem.disturbed_.astype(np.int64), "p_disturbed": sem.p_disturbed_})
+    for k in range(sem.p_mode_.shape[1]):
+        df[f"p_mode_{k}"] = sem.p_mode_[:, k]
+    if len(logs) > 1:
+        df.insert(1, "log", np.concatenate([np.full(lg.n_samples, i) for i, lg in enumerate(logs)]))
+    return df

@@ -1,0 +1,78 @@
+"""Drift (wear) flags: a parameter whose interval leaves the range it had in a robot's first logs.
+
+Rule. Per robot, the *baseline* is its first ``k`` logs in log-time order (logs that failed do
+not count). For each (effect, joint, parameter) found in at least one baseline log, the baseline
+interval is the envelope of the baseline logs' intervals, [min lo, max hi] (the pooled range the
+parameter took across those logs, each log's own uncertainty included). A later log *drifts*
+when its interval [lo, hi] lies entirely outside the baseline interval (lo > baseline hi, or
+hi < baseline lo). The first such log is named. A parameter found in no baseline log but in a
+later one is listed as *appeared* (an effect that was not there, or too small to be found).
+Rows without an interval (training rows, parameters without a standard deviation) are not judged.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+KEYS = ["robot", "effect", "joint", "param"]
+RULE = ("baseline = each robot's first {k} logs by log time; baseline interval = [min lo, max hi] over "
+        "the baseline logs where the parameter was found (lo/hi = value -+ 2 std); a later log drifts "
+        "when its [lo, hi] lies entirely outside the baseline interval")
+
+
+def _iso(ts) -> str | None:
+    return None if pd.isna(ts) else pd.Timestamp(ts).isoformat()
+
+
+def baseline_logs(table: pd.DataFrame, k: int) -> dict[str, list[str]]:
+    """Per robot, its first ``k`` logs that ran without error (log-time order, then path)."""
+    ok = table[table["error"].isna()].drop_duplicates("log").sort_values(["log_time", "log"], kind="stable")
+    return {str(robot): list(g["log"].iloc[:k]) for robot, g in ok.groupby("robot", sort=True)}
+
+
+def _judge(g: pd.DataFrame, base: list[str]) -> tuple[dict, pd.Index]:
+    """One series (rows of one robot, effect, joint, param in time order): its drift.json entry
+    and the index of its drifting rows."""
+    key = {k: (None if pd.isna(v) else v) for k, v in zip(KEYS, g.iloc[0][KEYS])}
+    in_base = g["log"].isin(base)
+    later = g[~in_base]
+    if not in_base.any():
+        first = later.iloc[0]
+        return dict(key, status="appeared", first_log=first["log"], first_log_time=_iso(first["log_time"]),
+                    first_value=float(first["value"])), g.index[:0]
+    lo, hi = float(g.loc[in_base, "lo"].min()), float(g.loc[in_base, "hi"].max())
+    out = (later["lo"] > hi) | (later["hi"] < lo)
+    flagged = later[out]
+    entry = dict(key, status="drift" if len(flagged) else "steady",
+                 baseline={"logs": list(g.loc[in_base, "log"]), "lo": lo, "hi": hi}, n_later_logs=int(len(later)),
+                 flagged_logs=list(flagged["log"]))
+    if len(flagged):
+        first = flagged.iloc[0]
+        entry.update(first_log=first["log"], first_log_time=_iso(first["log_time"]),
+                     first_value=float(first["value"]), first_interval=[float(first["lo"]), float(first["hi"])],
+                     direction="up" if first["lo"] > hi else "down")
+    return entry, flagged.index
+
+
+def flag_drift(table: pd.DataFrame, baseline: int = 5) -> tuple[pd.DataFrame, dict]:
+    """Add the ``drift`` column (bool) to a copy of the fleet table and build ``drift.json``.
+
+    ``baseline``: number of first logs per robot that define the baseline (>= 1). Returns
+    ``(table, report)``; ``report["series"]`` has one entry per judged series with ``status``
+    ``steady``, ``drift`` (naming ``first_log``) or ``appeared``."""
+    if baseline < 1:
+        raise ValueError(f"baseline must be at least 1 log, got {baseline}")
+    out = table.copy()
+    out["drift"] = False
+    judged = out[out["error"].isna() & out["effect"].notna() & np.isfinite(out["lo"]) & np.isfinite(out["hi"])]
+    bases = baseline_logs(out, baseline)
+    series = []
+    ordered = judged.assign(_j=judged["joint"].fillna("")).sort_values(["log_time", "log"], kind="stable")
+    for _, g in ordered.groupby(["robot", "effect", "_j", "param"], sort=True):
+        entry, drifting = _judge(g.drop(columns="_j"), bases.get(str(g["robot"].iloc[0]), []))
+        out.loc[drifting, "drift"] = True
+        series.append(entry)
+    report = {"rule": RULE.format(k=baseline), "baseline_size": baseline,
+              "baseline_logs": bases, "n_drifting": sum(s["status"] == "drift" for s in series),
+              "n_appeared": sum(s["status"] == "appeared" for s in series), "series": series}
+    return out, report

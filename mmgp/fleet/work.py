@@ -1,0 +1,167 @@
+"""What one fleet task does with one log: read it, diagnose it (optionally train on it), report.
+
+Everything here runs inside a Ray worker (or in this process for the serial engine) and returns
+plain data (dicts, lists, bytes), so that results travel back from any node of a cluster and
+the driver alone writes the output folder.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import time
+import traceback
+from datetime import datetime, timezone
+from pathlib import Path
+
+from ..errors import InputError
+
+#: Parquet file-metadata key holding when a log was recorded (ISO 8601, or Unix seconds)
+LOG_TIME_KEY = "log_time"
+
+#: thread-count variables of the numerical libraries a task uses (OpenMP, OpenBLAS, MKL, BLIS,
+#: Apple Accelerate, numexpr); Ray's workers get them at start, before numpy or torch load
+THREAD_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                     "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
+
+
+@contextlib.contextmanager
+def single_threaded():
+    """Run the block's numerics on one thread (BLAS, OpenMP, torch), then restore the counts.
+
+    One task per core: N tasks on N cores each using N BLAS threads would run N^2 threads."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _parse_log_time(raw: str, path: Path) -> float:
+    text = raw.strip()
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        stamp = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise InputError(f"metadata '{LOG_TIME_KEY}' is {raw!r}: expected an ISO 8601 time "
+                         "(e.g. 2026-11-22T10:00:00Z) or Unix seconds", file=path) from None
+    if stamp.tzinfo is None:  # a time without zone is read as UTC, the same on every node
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()
+
+
+def log_time(path: str | os.PathLike) -> tuple[float, str]:
+    """When a log was recorded, in Unix seconds, and where that came from.
+
+    Rule: the Parquet file-metadata key ``log_time`` when present (ISO 8601; a time without zone
+    is UTC; or a number of Unix seconds), otherwise the file's modification time (``mtime``; CSV
+    logs have no metadata). Returns ``(seconds, "metadata" | "mtime")``."""
+    path = Path(path)
+    if path.suffix.lower() in (".parquet", ".pq"):
+        import pyarrow.parquet as pq
+
+        with contextlib.suppress(Exception):  # an unreadable file is reported by read_log
+            meta = pq.read_schema(path).metadata or {}
+            raw = meta.get(LOG_TIME_KEY.encode())
+            if raw is not None:
+                return _parse_log_time(raw.decode(errors="replace"), path), "metadata"
+    return _mtime(path)
+
+
+def _mtime(path: Path) -> tuple[float, str]:
+    try:
+        return path.stat().st_mtime, "mtime"
+    except OSError:
+        return float("nan"), "missing"
+
+
+def robot_label(robot, robot_name: str | None) -> str:
+    """The fleet table's ``robot``: the name given or in the log's metadata, else the URDF's stem."""
+    if robot_name:
+        return robot_name
+    if getattr(robot, "name", None):
+        return robot.name
+    return Path(robot.urdf_path).stem if getattr(robot, "urdf_path", None) else "unknown"
+
+
+def diagnose_log(log, robot, settings: dict | None):
+    """Findings (contract section 2) and the whole result as a dict, for one read log (its
+    derivatives are estimated by the Diagnoser's own differentiator, as ``mmgp diagnose`` does).
+
+    The one place the fleet calls the diagnosis."""
+    from ..diagnosis import Diagnoser
+
+    diagnoser = Diagnoser(**(settings or {})).fit(log, robot)
+    return diagnoser.findings_, diagnoser.result_.to_dict()
+
+
+def train_log(path: Path, robot, settings: dict | None) -> dict:
+    """Train on one log; returns the training report and the saved model's files as bytes.
+
+    The one place the fleet calls the training."""
+    from ..data.outputs import jsonable, write_table
+    from ..estimator import MultimodalGP
+
+    model = MultimodalGP(robot=robot, **(settings or {})).fit(path)
+    with tempfile.TemporaryDirectory(prefix="mmgp-fleet-") as tmp:
+        folder = Path(tmp)
+        model.save(folder)
+        write_table(folder / "labels.parquet", model.labels_)
+        files = {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+    return {"report": jsonable(model.report_), "files": files}
+
+
+def _process(path: Path, job: dict, out: dict) -> None:
+    from ..data.logs import read_log
+    from ..physics.robot import load_robot
+
+    out["log_time"], out["log_time_source"] = log_time(path)
+    robot = load_robot(robot=job.get("robot"), urdf=job.get("urdf"), log_path=path)
+    if robot is None:
+        raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
+                         "(or name one in the log's metadata)", file=path)
+    out["robot"] = robot_label(robot, job.get("robot"))
+    log = read_log(path, n_joints=robot.n_joints, joint_names=robot.joint_names)
+    out["findings"], out["diagnosis"] = diagnose_log(log, robot, job.get("diagnosis_settings"))
+    if job.get("train"):
+        out["training"] = train_log(path, robot, job.get("train_settings"))
+
+
+def blank_outcome(job: dict, error: str | None = None) -> dict:
+    """The outcome of a job before it runs (or of one whose task never returned: ``error``)."""
+    out = {"log": str(job.get("name", job["path"])), "robot": job.get("robot"), "log_time": float("nan"),
+           "log_time_source": None, "findings": None, "diagnosis": None, "training": None, "error": error,
+           "seconds": 0.0}
+    if error is not None:
+        out["log_time"], out["log_time_source"] = _mtime(Path(job["path"]))
+    return out
+
+
+def process_log(job: dict) -> dict:
+    """One fleet task. ``job``: ``path`` (str, absolute), ``name`` (the log as the user gave it),
+    the fleet's ``robot``, ``urdf``, ``train``, ``diagnosis_settings``, ``train_settings``. Never
+    raises: a log that fails is returned with ``error`` (the message; an unexpected failure also
+    carries its traceback in ``traceback``)."""
+    path = Path(job["path"])
+    out = blank_outcome(job)
+    t0 = time.perf_counter()
+    try:
+        with single_threaded():
+            _process(path, job, out)
+    except InputError as exc:
+        out["error"] = str(exc)
+    except Exception as exc:  # one log's numerical failure must not end a fleet of hundreds
+        out["error"] = f"{type(exc).__name__}: {exc}"
+        out["traceback"] = traceback.format_exc()
+    out["seconds"] = time.perf_counter() - t0
+    if out["log_time_source"] is None:  # failed before or while reading the time: order by mtime
+        out["log_time"], out["log_time_source"] = _mtime(path)
+    return out

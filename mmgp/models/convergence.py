@@ -1,0 +1,84 @@
+"""When the stochastic EM stops: the per-sweep record and the convergence monitor.
+
+Sampled labels keep flickering at the margins, so convergence is judged on trends over the last
+``patience`` sweeps, then the posterior marginals of ``average_last`` further sweeps are averaged.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class SweepRecord:
+    sweep: int
+    log_joint: float          # log p(Y, s) at the sampled labels
+    log_marginal: float       # log p(Y) under the chain, given the sweep's likelihoods
+    changed: float            # fraction of samples whose state changed
+    n_disturbed: int
+    mode_sizes: list
+    seconds: float
+
+
+class ConvergenceMonitor:
+    """Decides, sweep by sweep, when to start averaging the posterior and when to stop.
+
+    Converged when at least ``min_sweeps`` sweeps are done and, over the last ``patience`` sweeps,
+    the sampled labels change in fewer than ``tol_changed`` of the samples on average and either
+    the mean log joint stops rising compared with the ``patience`` sweeps before or fewer than a
+    fifth of ``tol_changed`` change. After convergence (or ``max_sweeps``), the marginals (T, S)
+    of ``average_last`` more sweeps are averaged.
+
+    State: ``trace`` (list of SweepRecord), ``converged``, ``averaging`` (the sweeps now run are
+    averaged; no hyperparameter refits then), ``posterior()`` (T, S) once done.
+    """
+
+    def __init__(self, *, min_sweeps: int, max_sweeps: int, tol_changed: float, patience: int,
+                 average_last: int):
+        self.min_sweeps = min_sweeps
+        self.max_sweeps = max_sweeps
+        self.tol_changed = tol_changed
+        self.patience = patience
+        self.average_last = average_last
+        self.trace: list[SweepRecord] = []
+        self.converged = False
+        self.averaging = False
+        self._quiet = False
+        self._post_sum: np.ndarray | None = None
+        self._n_avg = 0
+
+    def update(self, rec: SweepRecord, probs: np.ndarray) -> bool:
+        """Record one sweep and its marginals (T, S); True when the EM should stop."""
+        self.trace.append(rec)
+        if self._post_sum is None:
+            self._post_sum = np.zeros_like(probs)
+        if self.averaging:
+            self._post_sum += probs
+            self._n_avg += 1
+            return self._n_avg >= self.average_last
+        if len(self.trace) >= 2 * self.patience:
+            self._quiet = self._labels_settled()
+        if len(self.trace) >= self.min_sweeps and self._quiet:
+            self.converged = True
+            self.averaging = True
+        elif len(self.trace) >= self.max_sweeps:
+            self.averaging = True
+        return False
+
+    def _labels_settled(self) -> bool:
+        # The mean log joint of the last `patience` sweeps no longer beats the mean of the
+        # `patience` before by more than a small tolerance, and few labels move.
+        lj = [r.log_joint for r in self.trace]
+        w = self.patience
+        now, before = np.mean(lj[-w:]), np.mean(lj[-2 * w:-w])
+        flat = now - before <= 1e-3 * abs(before) + 1.0
+        moved = np.mean([r.changed for r in self.trace[-w:]])
+        # Once under a fifth of the tolerance move, the sampled log joint only wanders with the
+        # draws (+-500 nats on a 5,000-sample 7-DOF log, where 20 more sweeps moved 0.5% of the
+        # labels), so it is not waited for.
+        return bool(moved < self.tol_changed and (flat or moved < 0.2 * self.tol_changed))
+
+    def posterior(self) -> np.ndarray:
+        """The averaged marginals (T, S) of the sweeps after convergence."""
+        return self._post_sum / max(self._n_avg, 1)

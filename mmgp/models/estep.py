@@ -1,0 +1,39 @@
+"""The E-step of the stochastic EM: new labels drawn from the chain's posterior given the
+per-sample likelihoods, the posterior marginals and the log marginal / joint likelihoods."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .hmm import ffbs_sample, forward_backward, gibbs_sweep, sequence_log_prior, transition_matrix
+
+
+@dataclass
+class EStepResult:
+    states: np.ndarray        # (T,) sampled state indices k + K * d
+    probs: np.ndarray         # (T, S) posterior marginals
+    log_marginal: float       # log p(Y) under the chain
+    log_joint: float          # log p(Y, s) at the sampled states
+
+
+def chain_matrix(n_modes: int, disturbance: bool, stay: float, p_enter: float, p_leave: float) -> np.ndarray:
+    """(S, S) transition matrix of the mode chain, times the disturbance chain when it is on."""
+    return transition_matrix(n_modes, stay, p_enter if disturbance else None, p_leave if disturbance else None)
+
+
+def e_step(loglik: np.ndarray, A: np.ndarray, init_p: np.ndarray, states: np.ndarray, method: str,
+           rng: np.random.Generator, starts: Sequence[int]) -> EStepResult:
+    """Labels for one sweep. loglik (T, S) per-sample log-likelihoods, A (S, S), init_p (S,),
+    ``states`` (T,) the current labels (Gibbs conditions on them), ``method`` "ffbs" (joint
+    forward-filtering backward-sampling) or "gibbs" (single-site, two interleaved blocks)."""
+    alpha, post, log_marg = forward_backward(loglik, A, init_p, starts)
+    if method == "ffbs":
+        new_states = ffbs_sample(alpha, A, rng, starts)
+        probs = post
+    else:
+        new_states, probs = gibbs_sweep(loglik, A, init_p, states, rng, starts)
+    T = len(new_states)
+    log_joint = float(loglik[np.arange(T), new_states].sum() + sequence_log_prior(new_states, A, init_p, starts))
+    return EStepResult(new_states, probs, float(log_marg), log_joint)

@@ -1,0 +1,53 @@
+"""The training report (``report.json``): what was learned, from what, and how the EM went."""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from .._version import __version__
+from ..data.logs import RobotLog
+from .features import input_names
+
+
+def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_names: list[str],
+                    robot_spec: dict | None, semiparametric: str, basis_kind: str | None,
+                    with_friction: bool, mode_selection: dict | None, timings: dict) -> dict:
+    """The report of one training run: ``sem`` a fitted MultimodalSEM on ``logs``; ``settings``
+    the estimator's JSON-able settings; ``timings`` in s."""
+    n = len(joint_names)
+    return {
+        "mmgp_version": __version__,
+        "logs": [lg.path for lg in logs],
+        "n_samples": int(sum(lg.n_samples for lg in logs)),
+        "n_joints": n,
+        "joint_names": joint_names,
+        "derivatives_estimated": {"dq": any(lg.dq_estimated for lg in logs),
+                                  "ddq": any(lg.ddq_estimated for lg in logs)},
+        "robot": robot_spec,
+        "semiparametric": semiparametric,
+        # The per-mode coefficients themselves are in model.npz (basis_coef_<k>).
+        "mean_basis": {"kind": basis_kind, "rank": int(sem.basis_rank_)},
+        "config": settings,
+        "n_modes": len(sem.gps_),
+        "mode_selection": mode_selection,
+        "hyperparameters": [
+            {"mode": k, "per_joint": [
+                {"joint": joint_names[j], "lengthscale": g.lengthscale_[j].tolist(),
+                 "signal_std": float(math.sqrt(g.hyper_.signal_var[j]) * g.y_scaler_.scale_[j]),
+                 "noise_std": float(g.noise_std_[j])} for j in range(n)],
+             "inputs": input_names(n, semiparametric == "feature", with_friction),
+             "n_support": int(len(sem.support_Y_[k]))}
+            for k, g in enumerate(sem.gps_)],
+        "disturbance": {"enabled": sem.disturbance, "sigma_d_std": np.sqrt(sem.sigma_d_).tolist(),
+                        "p_enter": sem.p_enter_, "p_leave": sem.p_leave_,
+                        "n_disturbed": int(sem.disturbed_.sum())},
+        "switching_prior": {"stay_prob": sem.stay_prob_, "learned": sem.stay_prob is None},
+        "likelihood_trace": [{"sweep": r.sweep, "log_joint": r.log_joint, "log_marginal": r.log_marginal,
+                              "changed": r.changed, "n_disturbed": r.n_disturbed, "mode_sizes": r.mode_sizes,
+                              "seconds": r.seconds} for r in sem.trace_],
+        "converged": bool(sem.converged_),
+        "n_sweeps": int(sem.n_sweeps_),
+        "timings": timings,
+    }

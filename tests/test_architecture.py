@@ -1,0 +1,126 @@
+"""The layout's rules, read from the code itself (docs/architecture.md draws the picture).
+
+Every import inside the package, module-level or inside a function, is read with ``ast`` and
+placed on its layer; an import may point to the same or a lower layer, never back up. The side
+package ``mmgp.sim`` (MuJoCo, an optional extra) may use the core; the core never imports it.
+Sizes: no module over 600 lines, no function over 80 lines of code (docstring excluded).
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "mmgp"
+
+# Lowest first. A module's layer is that of its longest listed prefix.
+LAYERS = {
+    "mmgp._version": 1, "mmgp.errors": 1, "mmgp.config": 1, "mmgp.resources": 1, "mmgp.threads": 1,
+    "mmgp.data": 2,
+    "mmgp.gp": 3,
+    "mmgp.physics": 4,
+    "mmgp.models": 5,
+    "mmgp.compensator": 6, "mmgp.diagnosis": 6, "mmgp.evaluation": 6, "mmgp.convert": 6,
+    "mmgp.estimator": 7, "mmgp.fleet": 7,
+    "mmgp": 8, "mmgp.cli": 8,
+}
+SIDE = "mmgp.sim"
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 80
+
+
+def _modules():
+    for path in sorted(PKG.rglob("*.py")):
+        parts = list(path.relative_to(PKG.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        yield ".".join(parts), path
+
+
+def _layer(module: str) -> int | None:
+    if module == SIDE or module.startswith(SIDE + "."):
+        return None
+    best = max((p for p in LAYERS if module == p or module.startswith(p + ".")), key=len)
+    return LAYERS[best]
+
+
+def _imports(module: str, path: Path):
+    """(line, imported module) for every import of an mmgp module in ``path``."""
+    is_pkg = path.name == "__init__.py"
+    package = module if is_pkg else module.rsplit(".", 1)[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            names = [target] if node.module else [f"{target}.{a.name}" for a in node.names]
+            for name in names:
+                if name.startswith("mmgp"):
+                    yield node.lineno, name
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("mmgp"):
+                    yield node.lineno, a.name
+
+
+def _existing(name: str) -> str:
+    """The module an import names: ``mmgp.gp.exact.ExactGP`` -> ``mmgp.gp.exact``."""
+    known = {m for m, _ in _modules()}
+    while name not in known and "." in name:
+        name = name.rsplit(".", 1)[0]
+    return name
+
+
+def test_no_import_runs_back_up_and_core_never_imports_sim():
+    bad = []
+    for module, path in _modules():
+        mine = _layer(module)
+        for line, target in _imports(module, path):
+            target = _existing(target)
+            theirs = _layer(target)
+            if mine is None:           # the side package may use the core
+                continue
+            if theirs is None:
+                bad.append(f"{path.name}:{line} {module} imports the side package {target}")
+            elif theirs > mine:
+                bad.append(f"{path.name}:{line} {module} (layer {mine}) imports {target} (layer {theirs})")
+    assert not bad, "imports that run back up:\n" + "\n".join(bad)
+
+
+def test_the_rule_catches_an_upward_import(tmp_path):
+    # The checker itself must be able to fail: a data module importing the CLI is an upward arrow.
+    f = tmp_path / "x.py"
+    f.write_text("from ..cli import app\n")
+    found = [t for _, t in _imports("mmgp.data.x", f)]
+    assert found == ["mmgp.cli"] and _layer(_existing(found[0])) > _layer("mmgp.data.x")
+
+
+def _function_lengths(path: Path):
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                body = body[1:]
+            if body:
+                yield node.name, node.lineno, body[-1].end_lineno - body[0].lineno + 1
+
+
+def test_modules_and_functions_stay_readable():
+    long_modules = [f"{p.relative_to(PKG.parent)}: {n} lines" for _, p in _modules()
+                    if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES]
+    long_functions = [f"{p.relative_to(PKG.parent)}:{line} {name}: {n} lines" for m, p in _modules()
+                      if _layer(m) is not None for name, line, n in _function_lengths(p) if n > MAX_FUNCTION_LINES]
+    assert not long_modules and not long_functions, "\n".join(long_modules + long_functions)
+
+
+@pytest.mark.parametrize("snippet, expected", [("def f():\n    '''doc'''\n" + "    x = 1\n" * 3, 3)])
+def test_function_length_counts_code_not_docstring(tmp_path, snippet, expected):
+    f = tmp_path / "m.py"
+    f.write_text(snippet)
+    assert [n for _, _, n in _function_lengths(f)] == [expected]
