@@ -10,7 +10,7 @@ Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``sour
 code set as the source: single-site Gibbs, plain LOO objective, exclusion_s 0, no friction input,
 no rigid-body mean), ``gp3sigma`` (one GP, 3-sigma LOO residuals), ``itgp`` (robustgp's
 iteratively trimmed GP, per joint), ``rrp`` (BoTorch's Robust Relevance Pursuit GP, per joint;
-only where it can finish in 10 minutes), and the prototypes of mmgp.models.chains.
+only where it can finish in 10 minutes).
 
 1-DOF logs run ``--seeds-1dof`` seeds (default 10), multi-joint logs ``--seeds-arm`` (default 3).
 Labels are judged as the validation harness does: clean samples must be called undisturbed,
@@ -156,33 +156,20 @@ SOURCE_SETTINGS = {"estep": "gibbs", "exclusion_s": 0.0, "friction_feature": Fal
 
 
 def prepare(case: Case, cfg) -> Prepared:
+    """The log's features as ``cfg`` (a MultimodalGP's settings) builds them."""
     from mmgp.models.features import build_features, friction_velocity_scale, load_logs, resolve_mean_basis
     from mmgp.physics.robot import load_robot
 
     robot = load_robot(log_path=case.log)
-    logs = load_logs([case.log], cfg, robot)
+    logs = load_logs([case.log], robot=robot, diff_window_s=cfg.diff_window_s, rate_hz=cfg.rate_hz)
     semi = cfg.semiparametric if robot is not None else "none"
     fscale = friction_velocity_scale(np.concatenate([lg.dq for lg in logs])) if cfg.friction_feature else None
     basis_kind = resolve_mean_basis(cfg.mean_basis, robot, semi)
     return Prepared(build_features(logs, semi, robot, fscale, basis_kind=basis_kind), basis_kind, robot)
 
 
-def sem_settings(cfg, basis_kind) -> dict:
-    """MultimodalSEM keyword arguments of mmgp.models.trained.train for ``cfg``."""
-    return dict(disturbance=cfg.disturbance, estep=cfg.estep, stay_prob=cfg.stay_prob, max_sweeps=cfg.max_sweeps,
-                min_sweeps=cfg.min_sweeps, average_last=cfg.average_last, max_support=cfg.max_support,
-                final_support=cfg.final_support, fit_points=cfg.fit_points, fit_iter=cfg.fit_iter,
-                exclusion_s=cfg.exclusion_s, seed=cfg.seed, shared_basis=basis_kind == "payload",
-                gp_kwargs={"ard": cfg.ard, "objective": cfg.objective, "device": cfg.device})
-
-
-def _sem_outcome(sem, t0, **info) -> Outcome:
-    return Outcome(sem.disturbed_.astype(bool), sem.p_disturbed_, sem.labels_, time.perf_counter() - t0,
-                   {"converged": bool(sem.converged_), "sweeps": int(sem.n_sweeps_), **info})
-
-
 class MmgpMethod:
-    """Today's training (``mmgp.models.trained.train``'s SEM) with settings ``overrides``."""
+    """``MultimodalGP(**overrides, seed=seed).fit(log)``: what `mmgp train` runs."""
 
     seeded = True
 
@@ -191,22 +178,20 @@ class MmgpMethod:
         self.modes_auto = modes_auto
 
     def config(self, seed: int = 0):
-        from mmgp.config import load_config
+        from mmgp.estimator import MultimodalGP
 
-        return load_config(None, seed=seed, **self.overrides)
+        return MultimodalGP(**{**self.overrides, "seed": seed, "n_modes": "auto" if self.modes_auto else 1})
 
     def __call__(self, case: Case, prep: Prepared, seed: int) -> Outcome:
-        from mmgp.models.sem import MultimodalSEM, select_n_modes
-
-        cfg = self.config(seed)
-        f = prep.feats
-        kw = sem_settings(cfg, prep.basis_kind)
+        model = self.config(seed)
+        if not self.modes_auto:
+            model.set_params(n_modes=case.n_modes)
         t0 = time.perf_counter()
-        if self.modes_auto:
-            sem, sel = select_n_modes(f.X, f.Y, (1, 2, 3), t=f.t, starts=f.starts, basis=f.basis, **kw)
-            return _sem_outcome(sem, t0, scores={int(k): float(v) for k, v in sel["scores"].items()})
-        sem = MultimodalSEM(n_modes=case.n_modes, **kw).fit(f.X, f.Y, t=f.t, starts=f.starts, basis=f.basis)
-        return _sem_outcome(sem, t0, log_marginal=float(sem.log_marginal_))
+        model.fit(str(case.log))
+        sem = model.sem_
+        info = {"converged": bool(sem.converged_), "sweeps": int(sem.n_sweeps_),
+                "log_marginal": float(sem.log_marginal_)}
+        return Outcome(sem.disturbed_.astype(bool), sem.p_disturbed_, sem.labels_, time.perf_counter() - t0, info)
 
 
 def _baseline_subset(T: int, limit: int = 3000) -> np.ndarray:
@@ -293,12 +278,6 @@ def rrp(case: Case, prep: Prepared, seed: int) -> Outcome:
 def methods_by_name(names, modes_auto: bool) -> dict:
     reg = {"mmgp": MmgpMethod(modes_auto=modes_auto), "source": MmgpMethod(SOURCE_SETTINGS, modes_auto),
            "gp3sigma": gp3sigma, "itgp": itgp, "rrp": rrp}
-    try:
-        from mmgp.models import chains
-
-        reg.update(chains.bench_methods(modes_auto))
-    except ImportError:
-        pass
     unknown = [n for n in names if n not in reg]
     if unknown:
         raise SystemExit(f"unknown methods {unknown}; known: {sorted(reg)}")
@@ -398,7 +377,7 @@ def main(argv=None) -> int:
     if only:
         cases = [c for c in cases if c.name in only]
     methods = methods_by_name(a.methods.split(","), a.modes_auto)
-    from mmgp.config import load_config
+    from mmgp.estimator import MultimodalGP
 
     results: dict = {m: {} for m in methods}
     for case in cases:
@@ -407,7 +386,7 @@ def main(argv=None) -> int:
             overrides = getattr(fn, "overrides", {})
             key = json.dumps(overrides, sort_keys=True)
             if key not in prep:
-                prep[key] = prepare(case, load_config(None, **overrides))
+                prep[key] = prepare(case, MultimodalGP(**overrides))
             seeds = range(a.seeds_1dof if case.n_joints == 1 else a.seeds_arm) if getattr(fn, "seeded", False) else [0]
             rows = []
             for seed in seeds:

@@ -10,7 +10,8 @@ import pinocchio as pin
 import pytest
 
 from mmgp.sim import family
-from mmgp.sim.recording import Push, reduced_pinocchio_model, robot_urdf_path
+from mmgp.sim.mjcf import reduced_pinocchio_model, robot_urdf_path
+from mmgp.sim.recording import Push
 
 
 def _short_lever(seed: int, **changes) -> family.ScenarioSpec:

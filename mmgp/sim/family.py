@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .recording import (LABEL_RULE, PANDA_JOINTS, Push, Recording, load_model, reduced_pinocchio_model,
-                        robot_urdf_path, set_payload, simulate)
+from .mjcf import load_model, reduced_pinocchio_model, robot_urdf_path, set_payload
+from .recording import LABEL_RULE, Push, Recording, simulate
+from .scenarios import PANDA_JOINTS
 
 LEVER_RATES = (20, 25, 40, 50, 100, 125, 200, 250, 500, 1000)
 ARM_RATES = (100, 125, 200, 250, 500)
