@@ -1,4 +1,4 @@
-"""Stochastic EM pieces (mmgp.em) against exact enumeration and brute-force GP refits.
+"""EM pieces (mmgp.models) against exact enumeration and brute-force GP refits.
 
 Tiny chains (T = 4..7 samples, S = 2..4 states) are small enough to enumerate all S^T label
 sequences, which gives the exact posterior marginals, the exact log marginal likelihood, the
@@ -365,7 +365,7 @@ def planted_signal(T=300, rate=20.0):
     return t, x, np.sin(1.5 * x)
 
 
-@pytest.mark.parametrize("estep", ["ffbs", "gibbs"])
+@pytest.mark.parametrize("estep", ["mpm", "ffbs", "gibbs"])
 def test_planted_modes_are_recovered(estep):
     t, x, f = planted_signal()
     rng = np.random.default_rng(0)
@@ -379,7 +379,7 @@ def test_planted_modes_are_recovered(estep):
     assert (m.labels_ == 0).sum() >= (m.labels_ == 1).sum()
 
 
-@pytest.mark.parametrize("estep", ["ffbs", "gibbs"])
+@pytest.mark.parametrize("estep", ["mpm", "ffbs", "gibbs"])
 def test_planted_disturbance_bursts_are_flagged(estep):
     t, x, f = planted_signal()
     rng = np.random.default_rng(1)
