@@ -284,8 +284,9 @@ class MultimodalSEM:
         return ModeFitter(X, Y, self, t_axis=axis, basis=basis), starts
 
     def _initial_states(self, fitter: ModeFitter) -> tuple[np.ndarray, object]:
-        """Start without labels (deterministic): one GP on everything, refitted on the
-        ``start_trim`` fractions of the samples with the smallest largest-joint z-score; samples
+        """Start without labels (deterministic): one GP on everything, refitted (with the
+        disturbance mode) on the ``start_trim`` fractions of the samples with the smallest
+        largest-joint z-score; samples
         whose robust z-score (median / MAD per joint, per initial mode) exceeds ``start_z`` start
         disturbed; for K > 1, modes from k-means on time-smoothed residuals (modes persist in
         time). Returns the states (T,) and the last GP's hyperparameters (the first warm start)."""
@@ -293,7 +294,8 @@ class MultimodalSEM:
         T, n = Y.shape
         K = self.n_modes
         mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True)
-        for frac in self.start_trim:
+        # Trimming is against pushes; without a disturbance mode every sample belongs to a mode.
+        for frac in (self.start_trim if self.disturbance else ()):
             z = (np.abs(Y - mean) / np.sqrt(var)).max(1)
             keep = np.sort(np.argsort(z, kind="stable")[:int(math.ceil(frac * T))])
             mean, var, gp, _, _ = fitter.predictive(keep, gp.hyper_, True)
