@@ -30,7 +30,7 @@ _CHOICES = {"estep": ("mpm", "ffbs", "gibbs"), "semiparametric": ("residual", "f
             "gp_method": GP_METHODS}
 _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last",
                  "patience", "n_inducing")
-_NON_NEGATIVE = ("exclusion_s", "block_s", "push_floor_z")
+_NON_NEGATIVE = ("exclusion_s", "block_s")
 _POSITIVE = ("push_s", "gap_s")
 _BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain")
 
@@ -214,6 +214,8 @@ class MultimodalGP(BaseEstimator):
         for key in _NON_NEGATIVE:
             if not _is_number(getattr(self, key)) or getattr(self, key) < 0:
                 bad(key, "a number of seconds >= 0")
+        if not _is_number(self.push_floor_z) or self.push_floor_z < 0:
+            bad("push_floor_z", "a number of standard deviations >= 0")
         for key in _POSITIVE:
             if not _is_number(getattr(self, key)) or getattr(self, key) <= 0:
                 bad(key, "a positive number of seconds")
