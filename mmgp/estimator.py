@@ -26,13 +26,14 @@ from .models.report import training_report
 
 MODEL_FORMAT = "mmgp-model"
 MODEL_VERSION = 3
-_CHOICES = {"estep": ("ffbs", "gibbs"), "semiparametric": ("residual", "feature", "none"),
+_CHOICES = {"estep": ("mpm", "ffbs", "gibbs"), "semiparametric": ("residual", "feature", "none"),
             "mean_basis": ("auto", "rbd", "payload", "none"), "objective": ("loo", "marginal"),
             "gp_method": GP_METHODS}
 _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last",
                  "patience", "n_inducing")
 _NON_NEGATIVE = ("exclusion_s", "block_s")
-_BOOL = ("disturbance", "friction_feature", "calibrate", "ard")
+_POSITIVE = ("push_s", "gap_s")
+_BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain")
 
 
 class MultimodalGP(BaseEstimator):
@@ -57,8 +58,11 @@ class MultimodalGP(BaseEstimator):
         The rigid-body model: an example-robot-data name (e.g. "panda"), a URDF path (ends in
         ".urdf") or a :class:`mmgp.RobotModel`. None: the one the first log's metadata names,
         if any (GP only otherwise, and always for arrays).
-    estep : "ffbs" or "gibbs", default "ffbs"
-        Joint forward-filtering backward-sampling of the labels, or single-site Gibbs.
+    estep : "mpm", "ffbs" or "gibbs", default "mpm"
+        Labels of each sweep: each sample's most probable state under the chain's posterior
+        (deterministic: the answer does not depend on ``seed``; replica seeds 0-9 gave one
+        answer), or drawn by joint forward-filtering backward-sampling, or by single-site
+        Gibbs (the source's method; both depend on ``seed``).
     stay_prob : float in (0, 1) or None, default None
         Fixed p(mode_t = mode_{t-1}); None learns it (Beta prior, mean 0.95).
     rate_hz : float > 0 or None, default None
@@ -83,10 +87,18 @@ class MultimodalGP(BaseEstimator):
         (what "auto" picks with a robot): the distal body's 10 inertial parameters shared by
         all joints; "rbd": every body's parameters per joint (also absorbed smooth pushes:
         Panda seed 2 F1 0.82 vs 0.95). Without a robot "auto" is "none".
+    push_s, gap_s : float > 0, default 1.0, 5.0
+        Prior push duration and time between pushes in s (worth 3 observed pushes): a flicker of
+        one sample costs the same at any sampling rate.
+    push_floor_z : float >= 0, default 5.0
+        A push is at least this many predictive standard deviations (floor of its spread).
+    abstain : bool, default True
+        Flag nothing when the disturbance mode does not raise the log marginal likelihood of
+        the labels' chain by more than its BIC price (a log without pushes).
     max_support : int, default 500
         At most this many undisturbed samples condition each mode's GP during the sweeps.
     final_support : int or None, default None
-        At most this many of a mode's undisturbed samples (random subset) condition its returned
+        At most this many of a mode's undisturbed samples (evenly spaced) condition its returned
         GP (used by predict and the export); None: every one.
     gp_method : "auto", "exact", "sgpr" or "subset", default "auto"
         The returned GPs' kind. "auto" (:func:`mmgp.gp.sparse.choose_gp_method`): an exact GP
@@ -100,7 +112,7 @@ class MultimodalGP(BaseEstimator):
     n_inducing : int, default 2000
         SGPR inducing inputs (or the subset size of "subset").
     fit_points, fit_iter : int, default 2000, 50
-        Hyperparameter fitting subset size (random samples) and L-BFGS iterations. The sweeps
+        Hyperparameter fitting subset size (evenly spaced samples) and L-BFGS iterations. The sweeps
         fit on their support (at most ``max_support``); one mode without disturbance fits on
         ``fit_points`` of all samples, one optimiser run per joint. Real Barrett WAM, exact GP
         on all 12,000 rows: 1,000 points, one joint run: mean test nMSE 0.022 (joint 7: 0.108).
@@ -125,7 +137,7 @@ class MultimodalGP(BaseEstimator):
     device : str, default "cpu"
         torch device: "cpu", "cuda" or "auto".
     seed : int, default 0
-        Seed of the stochastic EM (same seed and logs, same labels).
+        Seed of the "ffbs" and "gibbs" E-steps (unused by "mpm").
     progress : callable or None, default None
         Called with each sweep's :class:`mmgp.models.convergence.SweepRecord`.
 
@@ -142,11 +154,11 @@ class MultimodalGP(BaseEstimator):
     :class:`mmgp.models.sem.MultimodalSEM`, with its trace and last sweep).
     """
 
-    def __init__(self, n_modes=1, disturbance=True, robot=None, *, estep="ffbs", stay_prob=None,
+    def __init__(self, n_modes=1, disturbance=True, robot=None, *, estep="mpm", stay_prob=None,
                  rate_hz=None, diff_window_s=None, semiparametric="residual", exclusion_s=1.0, block_s=2.0,
                  friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
                  gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
-                 tol_changed=0.05, patience=3,
+                 tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, abstain=True,
                  average_last=5, mode_smoothing_s=4.0, calibrate=True, objective="loo", ard=True,
                  device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
@@ -171,6 +183,10 @@ class MultimodalGP(BaseEstimator):
         self.min_sweeps = min_sweeps
         self.tol_changed = tol_changed
         self.patience = patience
+        self.push_s = push_s
+        self.gap_s = gap_s
+        self.push_floor_z = push_floor_z
+        self.abstain = abstain
         self.average_last = average_last
         self.mode_smoothing_s = mode_smoothing_s
         self.calibrate = calibrate
@@ -199,6 +215,11 @@ class MultimodalGP(BaseEstimator):
         for key in _NON_NEGATIVE:
             if not _is_number(getattr(self, key)) or getattr(self, key) < 0:
                 bad(key, "a number of seconds >= 0")
+        if not _is_number(self.push_floor_z) or self.push_floor_z < 0:
+            bad("push_floor_z", "a number of standard deviations >= 0")
+        for key in _POSITIVE:
+            if not _is_number(getattr(self, key)) or getattr(self, key) <= 0:
+                bad(key, "a positive number of seconds")
         for key in _BOOL:
             if not isinstance(getattr(self, key), (bool, np.bool_)):
                 bad(key, "true or false")
@@ -243,7 +264,8 @@ class MultimodalGP(BaseEstimator):
     def _sem_settings(self, basis_kind: str | None) -> dict:
         return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
                     max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
-                    patience=self.patience, average_last=self.average_last, max_support=self.max_support,
+                    patience=self.patience, average_last=self.average_last, push_s=self.push_s,
+                    gap_s=self.gap_s, push_floor_z=self.push_floor_z, abstain=self.abstain, max_support=self.max_support,
                     final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
                     fit_points=self.fit_points, fit_iter=self.fit_iter,
                     exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,

@@ -1,4 +1,4 @@
-"""Stochastic EM pieces (mmgp.em) against exact enumeration and brute-force GP refits.
+"""EM pieces (mmgp.models) against exact enumeration and brute-force GP refits.
 
 Tiny chains (T = 4..7 samples, S = 2..4 states) are small enough to enumerate all S^T label
 sequences, which gives the exact posterior marginals, the exact log marginal likelihood, the
@@ -241,7 +241,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
         # (a) the em's own emission code
         loglik = np.empty((N, 2))
         for k in range(2):
-            mean, var, *_ = fitter.predictive(np.flatnonzero(w == k), hyper, False, rng)
+            mean, var, *_ = fitter.predictive(np.flatnonzero(w == k), hyper, False)
             loglik[:, k] = norm.logpdf(y, mean[:, 0], np.sqrt(var[:, 0]))
         p_em = gibbs_conditionals(loglik, A, init, w, np.arange(N))
         np.testing.assert_allclose(p_em, exact, atol=1e-8)
@@ -365,7 +365,7 @@ def planted_signal(T=300, rate=20.0):
     return t, x, np.sin(1.5 * x)
 
 
-@pytest.mark.parametrize("estep", ["ffbs", "gibbs"])
+@pytest.mark.parametrize("estep", ["mpm", "ffbs", "gibbs"])
 def test_planted_modes_are_recovered(estep):
     t, x, f = planted_signal()
     rng = np.random.default_rng(0)
@@ -379,7 +379,7 @@ def test_planted_modes_are_recovered(estep):
     assert (m.labels_ == 0).sum() >= (m.labels_ == 1).sum()
 
 
-@pytest.mark.parametrize("estep", ["ffbs", "gibbs"])
+@pytest.mark.parametrize("estep", ["mpm", "ffbs", "gibbs"])
 def test_planted_disturbance_bursts_are_flagged(estep):
     t, x, f = planted_signal()
     rng = np.random.default_rng(1)

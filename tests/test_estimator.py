@@ -68,7 +68,8 @@ def test_unfitted_use_is_a_clear_error(tmp_path):
     ("n_modes", 0), ("n_modes", 1.5), ("estep", "metropolis"), ("stay_prob", 1.0), ("rate_hz", -5.0),
     ("semiparametric", "both"), ("mean_basis", "linear"), ("max_sweeps", 0), ("patience", 2.5),
     ("tol_changed", 0.0), ("block_s", -1.0), ("mode_smoothing_s", 0.0), ("calibrate", "yes"),
-    ("objective", "mse"), ("device", "tpu"), ("seed", "zero"), ("progress", "print"), ("robot", 3.0)])
+    ("objective", "mse"), ("device", "tpu"), ("seed", "zero"), ("progress", "print"), ("robot", 3.0),
+    ("push_s", 0.0), ("gap_s", -1.0), ("push_floor_z", -0.5), ("abstain", 1)])
 def test_fit_refuses_a_bad_setting_naming_it(setting, value):
     with pytest.raises(InputError, match=f"'{setting}'"):
         MultimodalGP(**{setting: value}).fit(LOG)

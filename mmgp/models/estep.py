@@ -1,5 +1,6 @@
-"""The E-step of the stochastic EM: new labels drawn from the chain's posterior given the
-per-sample likelihoods, the posterior marginals and the log marginal / joint likelihoods."""
+"""The E-step of the EM: new labels from the chain's posterior given the per-sample
+likelihoods (its most probable state per sample, or a draw), the posterior marginals and the log
+marginal / joint likelihoods."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -12,10 +13,10 @@ from .hmm import ffbs_sample, forward_backward, gibbs_sweep, sequence_log_prior,
 
 @dataclass
 class EStepResult:
-    states: np.ndarray        # (T,) sampled state indices k + K * d
+    states: np.ndarray        # (T,) new state indices k + K * d
     probs: np.ndarray         # (T, S) posterior marginals
     log_marginal: float       # log p(Y) under the chain
-    log_joint: float          # log p(Y, s) at the sampled states
+    log_joint: float          # log p(Y, s) at the new states
 
 
 def chain_matrix(n_modes: int, disturbance: bool, stay: float, p_enter: float, p_leave: float) -> np.ndarray:
@@ -26,10 +27,15 @@ def chain_matrix(n_modes: int, disturbance: bool, stay: float, p_enter: float, p
 def e_step(loglik: np.ndarray, A: np.ndarray, init_p: np.ndarray, states: np.ndarray, method: str,
            rng: np.random.Generator, starts: Sequence[int]) -> EStepResult:
     """Labels for one sweep. loglik (T, S) per-sample log-likelihoods, A (S, S), init_p (S,),
-    ``states`` (T,) the current labels (Gibbs conditions on them), ``method`` "ffbs" (joint
-    forward-filtering backward-sampling) or "gibbs" (single-site, two interleaved blocks)."""
+    ``states`` (T,) the current labels (Gibbs conditions on them), ``method`` "mpm" (each
+    sample's most probable state under the posterior marginals: no draw, ``rng`` unused),
+    "ffbs" (joint forward-filtering backward-sampling) or "gibbs" (single-site, two interleaved
+    blocks)."""
     alpha, post, log_marg = forward_backward(loglik, A, init_p, starts)
-    if method == "ffbs":
+    if method == "mpm":
+        new_states = post.argmax(1)
+        probs = post
+    elif method == "ffbs":
         new_states = ffbs_sample(alpha, A, rng, starts)
         probs = post
     else:

@@ -22,6 +22,15 @@ from .hmm import _transition_counts
 from .robust import fit_basis_coefficients, fit_shared_coefficients
 
 
+def evenly_spaced(idx: np.ndarray, m: int) -> np.ndarray:
+    """At most ``m`` of the sorted indices ``idx``, spread evenly over them (every part of the log
+    represented, and the same subset whatever the seed)."""
+    idx = np.asarray(idx)
+    if len(idx) <= m:
+        return idx
+    return idx[np.unique(np.linspace(0, len(idx) - 1, m).round().astype(int))]
+
+
 @dataclass
 class SweepParams:
     """What the M-step re-estimates: per-mode GP hyperparameters (K, None before the first fit),
@@ -34,6 +43,37 @@ class SweepParams:
     p_leave: float
     sigma_d: np.ndarray
     calib: np.ndarray
+
+
+@dataclass
+class PushPrior:
+    """Beta priors of the disturbance chain in time, not samples: pushes last ``push_len`` samples
+    and come every ``gap_len`` samples a priori, worth ``n_pushes`` observed pushes; ``floor_z``:
+    a push is at least this many predictive standard deviations (Sigma_d's floor), so a mode for
+    samples barely off the model costs more than it explains."""
+
+    push_len: float
+    gap_len: float
+    n_pushes: float
+    floor_z: float
+
+    @classmethod
+    def in_seconds(cls, t_axis: np.ndarray | None, push_s: float, gap_s: float, n_pushes: float,
+                   floor_z: float) -> "PushPrior":
+        """Durations ``push_s``, ``gap_s`` in s at the median sample period of ``t_axis`` (T,);
+        without times, 5 and 20 samples (the per-sample priors of earlier versions)."""
+        if t_axis is None or len(t_axis) < 2:
+            return cls(5.0, 20.0, n_pushes, floor_z)
+        dt = float(np.median(np.diff(t_axis)))
+        return cls(max(push_s / dt, 2.0), max(gap_s / dt, 4.0), n_pushes, floor_z)
+
+    @property
+    def p_enter(self) -> float:
+        return 1.0 / self.gap_len
+
+    @property
+    def p_leave(self) -> float:
+        return 1.0 / self.push_len
 
 
 @dataclass
@@ -50,9 +90,11 @@ class ModeFitter:
 
     X (T, d) inputs, Y (T, n) torques; ``settings`` the sweep settings (``max_support``,
     ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
-    ``gp_method``, ``n_inducing``, ``seed``; a :class:`~mmgp.models.sem.MultimodalSEM`);
+    ``gp_method``, ``n_inducing``; a :class:`~mmgp.models.sem.MultimodalSEM`);
     ``t_axis`` (T,) one increasing time axis over all logs (enables the leave-window-out
     likelihood); ``basis`` (T, n, p) optional regressors of a robust linear mean under the GP.
+    Subsets (GP support, hyperparameter fitting points) are evenly spaced, and the GPs' own
+    fitting subsets use seed 0: the seed plays no part in the fitted models.
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, settings, *, t_axis: np.ndarray | None = None,
@@ -61,7 +103,7 @@ class ModeFitter:
 
     def new_gp(self) -> ExactGP:
         s = self.settings
-        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed)
+        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=0)
         kw.update(s.gp_kwargs)
         return ExactGP(**kw)
 
@@ -71,7 +113,7 @@ class ModeFitter:
         its own (its standard procedure on ``fit_points`` random members, one optimiser run
         per output)."""
         s = self.settings
-        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=s.seed, n_inducing=s.n_inducing,
+        kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=0, n_inducing=s.n_inducing,
                   n_subset=s.n_inducing, independent_outputs=True)
         kw.update(s.gp_kwargs)
         gp = make_gp(len(members), method=s.gp_method, **kw)
@@ -82,8 +124,7 @@ class ModeFitter:
         fit = fit_shared_coefficients if self.settings.shared_basis else fit_basis_coefficients
         return fit(self.basis[members], self.Y[members])
 
-    def predictive(self, members: np.ndarray, hyper: Hyper | None, optimise: bool,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, ExactGP, np.ndarray, np.ndarray | None]:
+    def predictive(self, members: np.ndarray, hyper: Hyper | None, optimise: bool) -> tuple[np.ndarray, np.ndarray, ExactGP, np.ndarray, np.ndarray | None]:
         """Mean and variance (T, n) of every sample under the model of ``members`` (out of
         sample: leave-window-out with a time axis, else LOO for the support), the GP, its
         support and the basis coefficients (None without a basis).
@@ -93,20 +134,18 @@ class ModeFitter:
         if self.basis is not None:
             coef = self.basis_coefficients(members)
             offset = np.einsum("tjp,jp->tj", self.basis, coef)
-            mean, var, gp, support = self._gp_predictive(self.Y - offset, members, hyper, optimise, rng)
+            mean, var, gp, support = self._gp_predictive(self.Y - offset, members, hyper, optimise)
             return mean + offset, var, gp, support, coef
-        return (*self._gp_predictive(self.Y, members, hyper, optimise, rng), None)
+        return (*self._gp_predictive(self.Y, members, hyper, optimise), None)
 
-    def _gp_predictive(self, Y, members, hyper, optimise, rng):
+    def _gp_predictive(self, Y, members, hyper, optimise):
         X, s = self.X, self.settings
-        support = members
-        if len(support) > s.max_support:
-            support = np.sort(rng.choice(support, s.max_support, replace=False))
+        support = evenly_spaced(members, s.max_support)
         gp = self.new_gp()
         windowed = self.t_axis is not None and s.exclusion_s > 0 and s.block_s > 0
         T, n = Y.shape
         if windowed and optimise:
-            hyper = self._windowed_hyper(gp, Y, support, hyper, rng)
+            hyper = self._windowed_hyper(gp, Y, support, hyper)
             optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
         if windowed:
@@ -122,12 +161,10 @@ class ModeFitter:
         mean[support], std[support] = m_l.reshape(-1, n), s_l.reshape(-1, n)
         return mean, std ** 2, gp, support
 
-    def _windowed_hyper(self, gp, Y, support, hyper, rng) -> Hyper:
+    def _windowed_hyper(self, gp, Y, support, hyper) -> Hyper:
         # Condition once on the fitting subset to get the standardisation, then tune there.
         X, s = self.X, self.settings
-        fit_idx = support
-        if len(fit_idx) > s.fit_points:
-            fit_idx = np.sort(rng.choice(support, s.fit_points, replace=False))
+        fit_idx = evenly_spaced(support, s.fit_points)
         gp.fit(X[fit_idx], Y[fit_idx], hyper=hyper or default_hyper(X.shape[1], Y.shape[1]), optimise=False)
         # Warm-started refits on long logs (where refits dominate the cost) get half the
         # iterations of the first fit.
@@ -142,7 +179,7 @@ def _gauss_logpdf(Y, mean, var):
 
 
 def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, n_modes: int,
-                   disturbance: bool, optimise: bool, rng: np.random.Generator) -> Emissions:
+                   disturbance: bool, optimise: bool) -> Emissions:
     """Refit every mode on its undisturbed samples under ``states`` (T,) and score all samples:
     loglik (T, S), column ``k`` mode k's GP, column ``K + k`` a push in mode k. Updates
     ``params.hypers`` to the fitted GPs' hyperparameters."""
@@ -157,9 +194,9 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
     for k in range(K):
         members = np.flatnonzero((mode_of == k) & ~dist)
         if len(members) < max(5, n):
-            # An emptied mode is re-seeded from random samples so K stays K.
-            members = np.sort(rng.choice(T, max(5, n), replace=False))
-        mean, var, gp, _, _ = fitter.predictive(members, params.hypers[k], optimise, rng)
+            # An emptied mode is re-seeded from samples spread over the log so K stays K.
+            members = evenly_spaced(np.arange(T), max(5, n))
+        mean, var, gp, _, _ = fitter.predictive(members, params.hypers[k], optimise)
         params.hypers[k] = gp.hyper_
         var = var * params.calib[k]
         mus.append(mean)
@@ -177,9 +214,10 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
 
 def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: SweepParams, *,
                       n_modes: int, disturbance: bool, calibrate: bool, learn_stay: bool,
-                      starts: Sequence[int]) -> None:
-    """The M-step after the E-step, in place on ``params``: calibration, Sigma_d, transitions
-    (weak Beta priors: p_enter mean 0.05, p_leave 0.2, stay 0.95)."""
+                      starts: Sequence[int], prior: PushPrior) -> None:
+    """The M-step after the E-step, in place on ``params``: calibration, Sigma_d (at least
+    ``prior.floor_z`` squared times the median predictive variance), transitions (Beta priors:
+    p_enter and p_leave from ``prior``, stay mean 0.95)."""
     T = len(Y)
     K = n_modes
     mode_of = states % K
@@ -201,10 +239,11 @@ def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: 
         var_s = np.stack(em.vars)[mode_of, np.arange(T)]
         if dist.sum() >= 3:
             excess = ((Y - mu_s) ** 2 - var_s)[dist].mean(0)
-            params.sigma_d = np.maximum(excess, 4.0 * np.median(var_s, 0))
+            params.sigma_d = np.maximum(excess, prior.floor_z ** 2 * np.median(var_s, 0))
         trans = _transition_counts(states, K, starts)
-        params.p_enter = (trans["enter"] + 1.0) / (trans["undisturbed"] + 20.0)
-        params.p_leave = (trans["leave"] + 2.0) / (trans["disturbed"] + 10.0)
+        n0 = prior.n_pushes
+        params.p_enter = (trans["enter"] + n0) / (trans["undisturbed"] + n0 * prior.gap_len)
+        params.p_leave = (trans["leave"] + n0) / (trans["disturbed"] + n0 * prior.push_len)
     if learn_stay and K > 1:
         trans = _transition_counts(states, K, starts)
         params.stay = (trans["stay"] + 19.0) / (trans["pairs"] + 20.0)

@@ -42,7 +42,13 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
             for k, g in enumerate(sem.gps_)],
         "disturbance": {"enabled": sem.disturbance, "sigma_d_std": np.sqrt(sem.sigma_d_).tolist(),
                         "p_enter": sem.p_enter_, "p_leave": sem.p_leave_,
-                        "n_disturbed": int(sem.disturbed_.sum())},
+                        "n_disturbed": int(sem.disturbed_.sum()),
+                        # log-evidence gain of the disturbance states over their BIC price;
+                        # <= 0 with abstain on: nothing flagged (a log without pushes).
+                        "evidence_gain": float(getattr(sem, "disturbance_gain_", 0.0)),
+                        "abstained": bool(sem.disturbance and getattr(sem, "abstain", False)
+                                          and getattr(sem, "disturbance_gain_", 1.0) <= 0.0)},
+        "deterministic": sem.estep == "mpm",
         "switching_prior": {"stay_prob": sem.stay_prob_, "learned": sem.stay_prob is None},
         "likelihood_trace": [{"sweep": r.sweep, "log_joint": r.log_joint, "log_marginal": r.log_marginal,
                               "changed": r.changed, "n_disturbed": r.n_disturbed, "mode_sizes": r.mode_sizes,

@@ -1,4 +1,4 @@
-"""Stochastic EM over dynamic modes and a disturbance mode, with per-mode exact GPs.
+"""EM over dynamic modes and a disturbance mode, with per-mode exact GPs.
 
 Hidden state of sample t: ``s_t = (k_t, d_t)``: dynamic mode ``k`` in ``0..K-1`` and a disturbance
 flag ``d`` (when the disturbance mode is on). State index ``s = k + K * d``.
@@ -18,9 +18,20 @@ samples every sweep (per joint, or one vector shared by all joints with ``shared
 
 Temporal prior: a Markov chain with ``p(k_t = k_{t-1}) = pi`` (the source's "stay" prior) and,
 independently, a two-state chain on ``d`` (enter / leave a push). Both are re-estimated from
-the sampled label sequences with weak Beta priors, unless fixed in the settings.
+the label sequences with Beta priors; the push chain's priors are durations in seconds
+(``push_s``, ``gap_s``, worth ``push_prior_n`` pushes), so a one-sample flicker costs the same
+at any sampling rate.
+
+Start (no labels given): one GP on every sample, then GPs refitted on the ``start_trim``
+fractions of the samples it explains best (pushes inflate a GP fitted on everything: noise 0.64
+N*m instead of 0.02 on the replica, and the pushes then look like noise); samples whose robust
+z-score under the last fit exceeds ``start_z`` start disturbed; for K > 1, modes from k-means on
+time-smoothed residuals.
 
 E-step (each sweep, likelihoods computed from the current labels):
+- ``"mpm"`` (default): each sample's most probable state under the posterior marginals
+  (forward-backward). With the deterministic start and evenly spaced GP subsets the whole fit is
+  deterministic: the answer does not depend on the seed.
 - ``"ffbs"``: forward filtering / backward sampling draws the whole label sequence jointly from
   the chain's posterior given the per-sample likelihoods; marginals from forward-backward.
 - ``"gibbs"``: single-site Gibbs as in the source, ``p(s_t | s_-t) ~ L_t(s) A(s_{t-1}, s)
@@ -28,7 +39,9 @@ E-step (each sweep, likelihoods computed from the current labels):
   neighbours they are conditionally independent, so the block update is exact Gibbs).
 M-step: refit each mode's GP on its undisturbed samples (hyperparameters by the LOO objective,
 warm-started, on a schedule), Sigma_d and the transition probabilities.
-Final labels are posterior marginals averaged over the last sweeps.
+Final labels are posterior marginals averaged over the last sweeps. Abstention: when the
+disturbance states do not raise the chain's log marginal likelihood by more than their BIC price
+(``0.5 log T`` per parameter), nothing is flagged.
 
 Pieces: :mod:`.mstep` (mode models, emissions, parameter updates), :mod:`.estep` (label
 sampling), :mod:`.convergence` (when to stop); this module runs the sweeps and keeps the result.
@@ -44,20 +57,22 @@ import numpy as np
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import chain_matrix, e_step
-from .mstep import ModeFitter, SweepParams, mode_emissions, update_parameters
+from .hmm import forward_backward
+from .mstep import ModeFitter, PushPrior, SweepParams, evenly_spaced, mode_emissions, update_parameters
 from .robust import basis_rank
 
 __all__ = ["MultimodalSEM", "SweepRecord", "select_n_modes"]
 
 
 class MultimodalSEM:
-    """Stochastic EM for multimodal GP inverse dynamics with a disturbance mode.
+    """EM for multimodal GP inverse dynamics with a disturbance mode.
 
     Parameters
     ----------
     n_modes : number of dynamic modes K (>= 1).
     disturbance : include the disturbance mode.
-    estep : "ffbs" (default; see benchmarks/bench_estep.py) or "gibbs".
+    estep : "mpm" (default: deterministic, the seed plays no part), "ffbs" or "gibbs" (stochastic:
+        the labels depend on ``seed``; see benchmarks/bench_labels.py).
     stay_prob : fixed p(k_t = k_{t-1}); None learns it (Beta prior, mean 0.95).
     max_sweeps, min_sweeps : sweep limits; convergence when, over the last ``patience`` sweeps,
         the sampled labels change in fewer than ``tol_changed`` of the samples on average and
@@ -65,10 +80,10 @@ class MultimodalSEM:
         fewer than a fifth of ``tol_changed`` change.
     average_last : sweeps after convergence whose posterior marginals are averaged.
     max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
-        (random subset; the others are predicted out of sample): each sweep costs
+        (evenly spaced; the others are predicted out of sample): each sweep costs
         O(max_support^2 * T) per joint.
     final_support : the returned GPs (used by predict/export) condition on up to this many of
-        their mode's undisturbed samples (random subset); None: every one.
+        their mode's undisturbed samples (evenly spaced); None: every one.
     gp_method, n_inducing : the returned GPs' kind (:func:`mmgp.gp.sparse.make_gp`: "auto",
         "exact", "sgpr", "subset") and SGPR inducing inputs.
     fit_points, fit_iter : hyperparameter fitting subset size and L-BFGS iterations.
@@ -78,21 +93,30 @@ class MultimodalSEM:
     calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
     shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
         payload) instead of one per joint.
+    push_s, gap_s, push_prior_n : prior push duration and time between pushes, seconds, and
+        how many observed pushes that prior is worth.
+    push_floor_z : a push is at least this many predictive standard deviations (Sigma_d floor).
+    start_trim : fractions of the samples kept by the successive refits of the start.
+    start_z : robust z-score over which a sample starts disturbed.
+    abstain : flag nothing when the disturbance states do not pay their BIC price.
     gp_kwargs : passed to ExactGP (e.g. ard, objective, device).
+    seed : draws of the "ffbs" and "gibbs" E-steps (unused by "mpm").
     """
 
-    def __init__(self, n_modes: int = 1, *, disturbance: bool = True, estep: str = "ffbs",
+    def __init__(self, n_modes: int = 1, *, disturbance: bool = True, estep: str = "mpm",
                  stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
                  tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
                  max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
                  final_support: int | None = 2000, gp_method: str = "auto", n_inducing: int = 2000,
                  exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0,
-                 calibrate: bool = True, shared_basis: bool = False, gp_kwargs: dict | None = None, seed: int = 0,
+                 calibrate: bool = True, shared_basis: bool = False, push_s: float = 1.0, gap_s: float = 5.0,
+                 push_prior_n: float = 3.0, push_floor_z: float = 5.0, start_trim: Sequence[float] = (0.8, 0.6),
+                 start_z: float = 3.0, abstain: bool = True, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
             raise ValueError("n_modes must be >= 1")
-        if estep not in ("ffbs", "gibbs"):
-            raise ValueError(f"estep must be 'ffbs' or 'gibbs', got {estep!r}")
+        if estep not in ("mpm", "ffbs", "gibbs"):
+            raise ValueError(f"estep must be 'mpm', 'ffbs' or 'gibbs', got {estep!r}")
         self.n_modes = n_modes
         self.disturbance = disturbance
         self.estep = estep
@@ -113,6 +137,13 @@ class MultimodalSEM:
         self.mode_smoothing_s = mode_smoothing_s
         self.calibrate = calibrate
         self.shared_basis = shared_basis
+        self.push_s = push_s
+        self.gap_s = gap_s
+        self.push_prior_n = push_prior_n
+        self.push_floor_z = push_floor_z
+        self.start_trim = start_trim
+        self.start_z = start_z
+        self.abstain = abstain
         self.gp_kwargs = gp_kwargs or {}
         self.seed = seed
         self.progress = progress
@@ -162,7 +193,8 @@ class MultimodalSEM:
         self.p_enter_ = self.p_leave_ = 0.0
         self.trace_, self.converged_, self.n_sweeps_, self.last_sweep_ = [], True, 0, None
         self.log_marginal_ = float("nan")
-        self._final_gps(fitter, [0], [None], np.random.default_rng(self.seed))
+        self.disturbance_gain_ = 0.0
+        self._final_gps(fitter, [0], [None])
         total = time.perf_counter() - t0
         self.timings_ = {"init_s": 0.0, "gp_s": total, "estep_s": 0.0, "total_s": total}
         return self
@@ -174,13 +206,15 @@ class MultimodalSEM:
         K = self.n_modes
         S = 2 * K if self.disturbance else K
         rng = np.random.default_rng(self.seed)
+        prior = PushPrior.in_seconds(fitter.t_axis, self.push_s, self.gap_s, self.push_prior_n, self.push_floor_z)
         init_hyper = None
         if init_states is not None:
             states = np.asarray(init_states, int).copy()
         else:
-            states, init_hyper = self._initial_states(fitter, rng)
+            states, init_hyper = self._initial_states(fitter)
         params = SweepParams(hypers=[init_hyper] * K, stay=self.stay_prob if self.stay_prob is not None else 0.95,
-                             p_enter=0.05, p_leave=0.2, sigma_d=fitter.Y.var(0) + 1e-12, calib=np.ones((K, n)))
+                             p_enter=prior.p_enter, p_leave=prior.p_leave, sigma_d=fitter.Y.var(0) + 1e-12,
+                             calib=np.ones((K, n)))
         init_p = np.full(S, 1.0 / S)
         # Hyperparameter refits dominate a sweep's cost on long logs; short logs refit often.
         refit_at = {0, 1, 2, 4, 8, 16, 32} if T <= 2000 else {0, 2, 5}
@@ -192,7 +226,7 @@ class MultimodalSEM:
         while True:
             ts = time.perf_counter()
             optimise = (sweep in refit_at) and not monitor.averaging
-            em = mode_emissions(fitter, states, params, K, self.disturbance, optimise, rng)
+            em = mode_emissions(fitter, states, params, K, self.disturbance, optimise)
             te = time.perf_counter()
             timings["gp_s"] += te - ts
             A = chain_matrix(K, self.disturbance, params.stay, params.p_enter, params.p_leave)
@@ -201,7 +235,8 @@ class MultimodalSEM:
             changed = float((step.states != states).mean())
             states = step.states
             update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=self.disturbance,
-                              calibrate=self.calibrate, learn_stay=self.stay_prob is None, starts=starts)
+                              calibrate=self.calibrate, learn_stay=self.stay_prob is None, starts=starts,
+                              prior=prior)
             # Kept for diagnostics (what the last sweep saw); references, no copies.
             self.last_sweep_ = {"means": em.means, "vars": em.vars, "loglik": em.loglik,
                                 "calib": params.calib.copy(), "sigma_d": np.array(params.sigma_d),
@@ -214,7 +249,7 @@ class MultimodalSEM:
             if monitor.update(rec, step.probs):
                 break
             sweep += 1
-        self._finish(fitter, monitor, params, rng)
+        self._finish(fitter, monitor, params, starts)
         self.n_sweeps_ = sweep
         timings["total_s"] = time.perf_counter() - t0
         self.timings_ = timings
@@ -233,7 +268,7 @@ class MultimodalSEM:
             basis = np.asarray(basis, dtype=np.float64)
             if basis.ndim != 3 or basis.shape[:2] != (T, n):
                 raise ValueError(f"basis must be (T, n, p) = ({T}, {n}, p), got {basis.shape}")
-            self.basis_rank_ = basis_rank(basis, seed=self.seed, shared=self.shared_basis)
+            self.basis_rank_ = basis_rank(basis, seed=0, shared=self.shared_basis)
         axis = None
         if t is not None:
             # One increasing time axis over all logs, with gaps wider than any window between them.
@@ -248,45 +283,62 @@ class MultimodalSEM:
             raise ValueError(f"{T} samples are too few for {self.n_modes} modes")
         return ModeFitter(X, Y, self, t_axis=axis, basis=basis), starts
 
-    def _initial_states(self, fitter: ModeFitter, rng) -> tuple[np.ndarray, object]:
-        """Start without labels: one GP on everything; robust outliers of its LOO residuals start
-        disturbed; for K > 1, modes from k-means on time-smoothed residuals (modes persist in time).
-        Returns the states (T,) and the GP's hyperparameters (the modes' first warm start)."""
+    def _initial_states(self, fitter: ModeFitter) -> tuple[np.ndarray, object]:
+        """Start without labels (deterministic): one GP on everything, refitted (with the
+        disturbance mode) on the ``start_trim`` fractions of the samples with the smallest
+        largest-joint z-score; samples
+        whose robust z-score (median / MAD per joint, per initial mode) exceeds ``start_z`` start
+        disturbed; for K > 1, modes from k-means on time-smoothed residuals (modes persist in
+        time). Returns the states (T,) and the last GP's hyperparameters (the first warm start)."""
         Y = fitter.Y
         T, n = Y.shape
         K = self.n_modes
-        mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True, rng)
-        r = (Y - mean) / np.sqrt(var)
-        states = np.zeros(T, int)
+        mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True)
+        # Trimming is against pushes; without a disturbance mode every sample belongs to a mode.
+        for frac in (self.start_trim if self.disturbance else ()):
+            z = (np.abs(Y - mean) / np.sqrt(var)).max(1)
+            keep = np.sort(np.argsort(z, kind="stable")[:int(math.ceil(frac * T))])
+            mean, var, gp, _, _ = fitter.predictive(keep, gp.hyper_, True)
+        modes = self._initial_modes(fitter, Y - mean) if K > 1 else np.zeros(T, int)
+        states = modes.copy()
         if self.disturbance:
-            mad = np.median(np.abs(r - np.median(r, 0)), 0) * 1.4826 + 1e-12
-            z = np.abs(r - np.median(r, 0)) / mad
-            states[(z > 4.0).any(1)] = K  # k=0, d=1
-        if K > 1:
-            from scipy.ndimage import median_filter
-            from sklearn.cluster import KMeans
-
-            # Modes persist far longer than pushes: a running median over a few seconds keeps a
-            # mode's offset and suppresses pushes, which would otherwise dominate the clustering.
-            raw = Y - mean
-            if fitter.t_axis is not None:
-                dt = float(np.median(np.diff(fitter.t_axis)))
-                w = int(round(self.mode_smoothing_s / max(dt, 1e-9)))
-            else:
-                w = T // 25
-            w = int(min(max(w, 3), max(3, T // 4)))
-            smooth = median_filter(raw, size=(w, 1), mode="nearest")
-            smooth = smooth / (smooth.std(0) + 1e-12)
-            km = KMeans(n_clusters=K, n_init=10, random_state=self.seed).fit(smooth)
-            states = km.labels_ + K * (states >= K)
+            r = (Y - mean) / np.sqrt(var)
+            z = np.zeros_like(r)
+            for k in range(K):
+                sel = modes == k
+                if sel.any():
+                    dev = np.abs(r[sel] - np.median(r[sel], 0))
+                    z[sel] = dev / (1.4826 * np.median(dev, 0) + 1e-12)
+            states[(z > self.start_z).any(1)] += K
         return states, gp.hyper_
 
-    def _finish(self, fitter: ModeFitter, monitor: ConvergenceMonitor, params: SweepParams, rng) -> None:
+    def _initial_modes(self, fitter: ModeFitter, raw: np.ndarray) -> np.ndarray:
+        """K-means (fixed seed) on residuals ``raw`` (T, n) smoothed over ``mode_smoothing_s``."""
+        from scipy.ndimage import median_filter
+        from sklearn.cluster import KMeans
+
+        T = len(raw)
+        # Modes persist far longer than pushes: a running median over a few seconds keeps a
+        # mode's offset and suppresses pushes, which would otherwise dominate the clustering.
+        if fitter.t_axis is not None:
+            dt = float(np.median(np.diff(fitter.t_axis)))
+            w = int(round(self.mode_smoothing_s / max(dt, 1e-9)))
+        else:
+            w = T // 25
+        w = int(min(max(w, 3), max(3, T // 4)))
+        smooth = median_filter(raw, size=(w, 1), mode="nearest")
+        smooth = smooth / (smooth.std(0) + 1e-12)
+        return KMeans(n_clusters=self.n_modes, n_init=10, random_state=0).fit(smooth).labels_
+
+    def _finish(self, fitter: ModeFitter, monitor: ConvergenceMonitor, params: SweepParams, starts) -> None:
         """Labels from the averaged marginals, nominal mode first, and the final GPs."""
         K, T, n = self.n_modes, *fitter.Y.shape
         post = monitor.posterior()
         p_mode = np.clip(post[:, :K] + (post[:, K:] if self.disturbance else 0.0), 0.0, 1.0)
         p_dist = np.clip(post[:, K:].sum(1), 0.0, 1.0) if self.disturbance else np.zeros(T)
+        self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
+        if self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0:
+            p_dist = np.zeros(T)
         # Mode 0 is the nominal mode: the one holding the most undisturbed probability mass.
         order = np.argsort(-(p_mode * (1 - p_dist)[:, None]).sum(0), kind="stable")
         self.p_mode_ = p_mode[:, order]
@@ -300,9 +352,25 @@ class MultimodalSEM:
         self.trace_ = monitor.trace
         self.converged_ = monitor.converged
         self.log_marginal_ = monitor.trace[-1].log_marginal
-        self._final_gps(fitter, order, params.hypers, rng)
+        self._final_gps(fitter, order, params.hypers)
 
-    def _final_gps(self, fitter: ModeFitter, order, hypers, rng) -> None:
+    def _disturbance_gain(self, params: SweepParams, starts) -> float:
+        """log p(Y) of the last sweep's chain minus that of the same chain without disturbance
+        states (modes only), minus the disturbance parameters' BIC price (p_enter, p_leave,
+        Sigma_d: 2 + n, at 0.5 log T each). Positive: the disturbance mode earns its keep."""
+        from .estep import chain_matrix
+
+        loglik = self.last_sweep_["loglik"]
+        T, S = loglik.shape
+        K = self.n_modes
+        n = len(params.sigma_d)
+        A_full = chain_matrix(K, True, params.stay, params.p_enter, params.p_leave)
+        A_modes = chain_matrix(K, False, params.stay, 0.0, 1.0)
+        full = forward_backward(loglik, A_full, np.full(S, 1.0 / S), starts)[2]
+        modes_only = forward_backward(loglik[:, :K], A_modes, np.full(K, 1.0 / K), starts)[2]
+        return float(full - modes_only - 0.5 * math.log(T) * (2 + n))
+
+    def _final_gps(self, fitter: ModeFitter, order, hypers) -> None:
         # Final GPs conditioned on the final labels, hyperparameters kept from the last refit.
         # support_Y_ holds the GP's targets: torques minus the basis part when there is one.
         X, Y = fitter.X, fitter.Y
@@ -322,8 +390,8 @@ class MultimodalSEM:
                 coef = fitter.basis_coefficients(members)
                 Yk = Y - np.einsum("tjp,jp->tj", fitter.basis, coef)
             self.coef_.append(coef)
-            if self.final_support is not None and len(members) > self.final_support:
-                members = np.sort(rng.choice(members, self.final_support, replace=False))
+            if self.final_support is not None:
+                members = evenly_spaced(members, self.final_support)
             self.gps_.append(fitter.final_gp(members, Yk, hypers[k]))
             self.support_X_.append(X[members])
             self.support_Y_.append(Yk[members])
