@@ -157,13 +157,14 @@ SOURCE_SETTINGS = {"estep": "gibbs", "exclusion_s": 0.0, "friction_feature": Fal
 
 def prepare(case: Case, cfg) -> Prepared:
     """The log's features as ``cfg`` (a MultimodalGP's settings) builds them."""
-    from mmgp.models.features import build_features, friction_velocity_scale, load_logs, resolve_mean_basis
+    from mmgp.models.features import build_features, load_logs, resolve_mean_basis
+    from mmgp.physics.context import smooth_sign_scale
     from mmgp.physics.robot import load_robot
 
     robot = load_robot(log_path=case.log)
     logs = load_logs([case.log], robot=robot, diff_window_s=cfg.diff_window_s, rate_hz=cfg.rate_hz)
     semi = cfg.semiparametric if robot is not None else "none"
-    fscale = friction_velocity_scale(np.concatenate([lg.dq for lg in logs])) if cfg.friction_feature else None
+    fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs])) if cfg.friction_feature else None
     basis_kind = resolve_mean_basis(cfg.mean_basis, robot, semi)
     return Prepared(build_features(logs, semi, robot, fscale, basis_kind=basis_kind), basis_kind, robot)
 

@@ -20,7 +20,8 @@ from .data.logs import MIN_SAMPLES, RobotLog
 from .errors import InputError
 from .gp.hyper import Hyper
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
-from .models.features import (build_features, friction_velocity_scale, load_logs, resolve_mean_basis,
+from .physics.context import smooth_sign_scale
+from .models.features import (build_features, load_logs, resolve_mean_basis,
                               state_features)
 from .models.report import training_report
 
@@ -79,8 +80,9 @@ class MultimodalGP(BaseEstimator):
     block_s : float >= 0, default 2.0
         Block length in s of the leave-block-out hyperparameter objective (0: per-sample LOO).
     friction_feature : bool, default True
-        Add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step); v_s is 5% of
-        the joint's 95th-percentile speed.
+        Add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step); v_s is the one
+        smooth-sign rule of the package (:func:`mmgp.physics.context.smooth_sign_scale`: 3 x the
+        joint's velocity noise, at least 1% of its RMS speed), the same the diagnosis uses.
     mean_basis : "auto", "payload", "rbd" or "none", default "auto"
         With a robot and "residual": each mode's mean is linear in rigid-body regressors,
         fitted robustly per mode, under its GP, so a mode extrapolates like physics. "payload"
@@ -305,7 +307,7 @@ class MultimodalGP(BaseEstimator):
         logs_ = load_logs(sources, robot=robot, diff_window_s=self.diff_window_s, rate_hz=self.rate_hz)
         t_load = time.perf_counter() - t0
         semi = self.semiparametric if robot is not None else "none"
-        fscale = (friction_velocity_scale(np.concatenate([lg.dq for lg in logs_]))
+        fscale = (smooth_sign_scale(np.concatenate([lg.dq for lg in logs_]))
                   if self.friction_feature else None)
         basis_kind = resolve_mean_basis(self.mean_basis, robot, semi)
         feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)

@@ -94,5 +94,13 @@ def test_smooth_sign_scale_tracks_noise():
     t = np.linspace(0, 10, 5000)
     clean = np.sin(t)[:, None]
     for sigma in (0.001, 0.01):
-        vs = smooth_sign_scale(clean + sigma * rng.standard_normal(clean.shape), k=3.0, floor_frac=0.0)
+        vs = smooth_sign_scale(clean + sigma * rng.standard_normal(clean.shape), k=3.0, speed_frac=0.0)
         assert vs[0] == pytest.approx(3 * sigma, rel=0.15)
+
+
+def test_smooth_sign_scale_on_a_clean_log_is_a_fraction_of_the_speed():
+    # dq = sin(t) over whole periods: |sin| of a uniform phase has P(|sin| <= x) = (2/pi) arcsin(x),
+    # so its 95th percentile is sin(0.95 pi / 2); noise-free, the speed term decides.
+    t = np.linspace(0, 2 * np.pi * 20, 200001)
+    vs = smooth_sign_scale(np.sin(t)[:, None])
+    assert vs[0] == pytest.approx(0.05 * np.sin(0.95 * np.pi / 2), rel=1e-3)

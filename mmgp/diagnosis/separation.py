@@ -128,7 +128,7 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
                 n_modes: int = 1, max_points: int = 500, seed: int = 0, **sem_kw) -> dict:
     """The multimodal learner's separation: ``MultimodalSEM`` (disturbance mode on) on the
     nominal residual ``resid = tau - tau_rbd`` (T, n), N*m, with GP inputs
-    ``[q, dq, ddq, tanh(dq / v_s)]`` (v_s as in training, ``friction_velocity_scale``: without
+    ``[q, dq, ddq, tanh(dq / v_s)]`` (v_s as in training, :func:`mmgp.physics.context.smooth_sign_scale`: without
     the smooth sign a GP cannot follow the friction jump at velocity reversals and would take it
     for pushes), on at most ``max_points`` samples evenly spaced in time (``t`` in s is passed, so
     likelihoods leave a window out and a long push is not explained by itself).
@@ -137,12 +137,12 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     "mode": (T,) int mode labels (nearest subsample), "sigma_d": (n,), "n_modes", "n_points",
     "seconds", "n_sweeps"}. ``sem_kw`` overrides MultimodalSEM settings.
     """
-    from ..models.features import friction_velocity_scale
+    from ..physics.context import smooth_sign_scale
     from ..models.sem import MultimodalSEM
 
     T, n = resid.shape
     idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
-    vs = friction_velocity_scale(dq)
+    vs = smooth_sign_scale(dq)
     X = np.concatenate([q, dq, ddq, np.tanh(dq / vs)], axis=1)[idx]
     # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
     # sweeps (about 10 s on a 7-DOF log on one core)

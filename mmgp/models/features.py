@@ -51,13 +51,6 @@ class Features:
     basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
 
 
-def friction_velocity_scale(dq: np.ndarray) -> np.ndarray:
-    """Per-joint velocity scale v_s (n,) of the smooth sign tanh(dq / v_s): 5% of the joint's
-    95th-percentile speed, so the sign saturates for all but the slowest samples on any robot."""
-    v = 0.05 * np.percentile(np.abs(dq), 95, axis=0)
-    return np.maximum(v, 1e-6)
-
-
 def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
     """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis)."""
     rbd_ok = robot is not None and semiparametric == "residual"
