@@ -94,7 +94,7 @@ def test_smooth_sign_scale_tracks_noise():
     t = np.linspace(0, 10, 5000)
     clean = np.sin(t)[:, None]
     for sigma in (0.001, 0.01):
-        vs = smooth_sign_scale(clean + sigma * rng.standard_normal(clean.shape), k=3.0, speed_frac=0.0)
+        vs = smooth_sign_scale(clean + sigma * rng.standard_normal(clean.shape), k=3.0, speed_frac=0.0, floor_frac=0.0)
         assert vs[0] == pytest.approx(3 * sigma, rel=0.15)
 
 

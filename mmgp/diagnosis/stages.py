@@ -98,7 +98,7 @@ def build_problem(log: RobotLog, robot, n_samples_in_log: int, smear_s: float, *
     q, dq, t = log.q, log.dq, log.t
     names = list(getattr(robot, "joint_names", None) or log.joint_names or
                  [str(pin_model(robot).names[j]) for j in range(1, q.shape[1] + 1)])
-    vs = smooth_sign_scale(dq, k=sign_noise_factor)
+    vs = smooth_sign_scale(dq, k=sign_noise_factor, speed_frac=0.0)
     ctx = build_context(robot, q, dq, log.ddq, v_s=vs, joint_names=names)
     library = effect_library(ctx, effects=effects, payload_links=payload_links)
     if any(cls.scope == "model" for cls in effect_classes(effects)):

@@ -117,36 +117,10 @@ class MultimodalSEM:
             raise ValueError("n_modes must be >= 1")
         if estep not in ("mpm", "ffbs", "gibbs"):
             raise ValueError(f"estep must be 'mpm', 'ffbs' or 'gibbs', got {estep!r}")
-        self.n_modes = n_modes
-        self.disturbance = disturbance
-        self.estep = estep
-        self.stay_prob = stay_prob
-        self.max_sweeps = max_sweeps
-        self.min_sweeps = min_sweeps
-        self.tol_changed = tol_changed
-        self.patience = patience
-        self.average_last = average_last
-        self.max_support = max_support
-        self.final_support = final_support
-        self.gp_method = gp_method
-        self.n_inducing = n_inducing
-        self.fit_points = fit_points
-        self.fit_iter = fit_iter
-        self.exclusion_s = exclusion_s
-        self.block_s = block_s
-        self.mode_smoothing_s = mode_smoothing_s
-        self.calibrate = calibrate
-        self.shared_basis = shared_basis
-        self.push_s = push_s
-        self.gap_s = gap_s
-        self.push_prior_n = push_prior_n
-        self.push_floor_z = push_floor_z
-        self.start_trim = start_trim
-        self.start_z = start_z
-        self.abstain = abstain
-        self.gp_kwargs = gp_kwargs or {}
-        self.seed = seed
-        self.progress = progress
+        # Every setting is stored unchanged under its own name, in one statement, so the stored
+        # list cannot drift from the signature (MultimodalGP passes its own settings through).
+        settings = {k: v for k, v in locals().items() if k != "self"}
+        vars(self).update(settings, gp_kwargs=gp_kwargs or {})
 
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),

@@ -43,26 +43,31 @@ def reach_of(model) -> float | None:
     return reach if reach > 0 else None
 
 
-def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.05) -> np.ndarray:
+def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.05,
+                      floor_frac: float = 0.01) -> np.ndarray:
     """Velocity scale ``v_s`` (n,) of the smooth sign ``tanh(dq / v_s)``, in rad/s: the one rule of
-    the package (training's GP input and the diagnosis's friction columns).
+    the package, ``max(k * velocity noise, speed_frac * 95th-percentile speed, floor_frac * RMS
+    speed)`` per joint.
 
-    ``v_s`` is the larger of ``k`` times the velocity noise and ``speed_frac`` of the joint's
-    95th-percentile speed. The noise term keeps the sign from flipping on noise: it is estimated
-    from second differences of ``dq`` (a smooth signal's second difference is ~0, white noise's
-    has variance 6 sigma^2; the MAD makes it robust to turning points). The speed term keeps the
-    sign smooth on a noise-free or finely sampled log, so it saturates for all but the slowest
-    samples: with the noise term alone (v_s 0.03 instead of 0.05 rad/s) the shipped replica's
-    pushes were taken for friction (81% missed); the diagnosis's figures did not move
-    (benchmarks/README.md).
+    The noise term keeps the sign from flipping on noise: it is estimated from second differences
+    of ``dq`` (a smooth signal's second difference is ~0, white noise's has variance 6 sigma^2; the
+    MAD makes it robust to turning points). The speed term makes the sign saturate for all but the
+    slowest samples; the floor keeps a noise-free (simulated) log from a discontinuous sign.
+
+    Two users, two settings of the same rule: the GP input of training uses the defaults (with the
+    noise term alone, v_s 0.03 instead of 0.05 rad/s, the shipped replica's pushes were taken for
+    friction: 81% missed); the diagnosis's friction columns model a hard Coulomb sign and pass
+    ``speed_frac=0`` (with 0.05 the replica's load-dependent friction was no longer named).
     """
     dq = np.asarray(dq, dtype=np.float64)
+    rms = np.sqrt(np.mean(dq ** 2, axis=0)) if dq.shape[0] else np.zeros(dq.shape[1:])
     speed = speed_frac * np.percentile(np.abs(dq), 95, axis=0) if dq.shape[0] else np.zeros(dq.shape[1:])
+    floor = np.maximum.reduce([floor_frac * rms, speed, np.full_like(rms, 1e-4)])
     if dq.shape[0] < 5:
-        return np.maximum(speed, 1e-4)
+        return np.maximum(floor, 1e-3)
     d2 = dq[2:] - 2 * dq[1:-1] + dq[:-2]
     sigma = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
-    return np.maximum.reduce([k * sigma, speed, np.full_like(speed, 1e-4)])
+    return np.maximum(k * sigma, floor)
 
 
 @dataclass
@@ -162,7 +167,7 @@ def build_context(robot, q, dq, ddq, *, v_s: np.ndarray | None = None,
         dtdq[i] = dq_
         Y[i] = pin.computeJointTorqueRegressor(model, data, qc[i], dq[i], ddq[i])
     names = list(joint_names) if joint_names is not None else [model.names[j] for j in range(1, model.njoints)]
-    vs = smooth_sign_scale(dq) if v_s is None else np.asarray(v_s, dtype=np.float64)
+    vs = smooth_sign_scale(dq, speed_frac=0.0) if v_s is None else np.asarray(v_s, dtype=np.float64)
     pi0 = np.concatenate([model.inertias[j].toDynamicParameters() for j in range(1, model.njoints)])
     return Context(q, dq, ddq, tau, dtdq, Y, vs, names, link_names_of(model), reach=reach_of(model), pi0=pi0,
                    distal=distal_links(model))
