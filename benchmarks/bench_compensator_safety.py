@@ -258,7 +258,8 @@ def report(results: dict) -> None:
         print(f"\n== {name}: {r['kind']}, {r['n_support']} support points, export {r['export_s']:.0f} s; "
               f"payload {pl['mass']:.4f} kg at {f(pl['com'], 4)} m (free fit m = {pl['unconstrained_first_moments'][0]:.4f}"
               f" kg; active {pl['active_constraints']}); re-identified masses "
-              f"{f(r['identification']['reidentified']['masses'], 3)} (URDF {f(r['identification']['nominal_masses'], 3)}) kg")
+              f"{f(r['identification'].get('reidentified', {}).get('masses', [float('nan')]), 3)} (URDF "
+              f"{f(r['identification']['nominal_masses'], 3)}) kg; decision {r['identification'].get('reidentify_decision')}")
         print(f"   radii (rad) {f(r['radii_rad'])} (scale {r['radius_scale']}); 500 uniform poses: inside the region "
               f"{r['poses']['inside_region']:.3f}, median region distance {r['poses']['median_region_distance']:.2f}, "
               f"median distance to the nearest support pose {r['poses']['median_rad_to_nearest_support']:.2f} rad")
