@@ -86,7 +86,7 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
     O((N n)^3) time; 1000 points x 7 joints is a 7000 system, a few seconds). Targets are the
     model's own ``nominal_torque`` at those points, so the compensator approximates the model, not
     the raw data. ``prior``: with a model that has a ``robot``, "auto" (the rigid-body prior with a
-    payload and every body re-identified, :func:`model_prior`), "payload" (nominal bodies plus the
+    payload, every body re-identified where the data ask for it, :func:`model_prior`), "payload" (nominal bodies plus the
     payload only) or "none" (zero mean, as without a robot).
     ``kernel``: "wendland" (kind ``curl-free-wendland``, a valid region, module docstring) or "rbf"
     (the Gaussian kinds of format version 1: ``erf-1dof`` for one joint, ``curl-free-rbf``).
@@ -102,7 +102,8 @@ def compensator_from_model(model: FeedforwardSource, *, max_support: int = 1000,
     n = Q.shape[1]
     names = list(getattr(model, "joint_names_", None) or [f"q_{i}" for i in range(n)])
     robot = model_robot(model) if prior != "none" else None
-    rb = model_prior(model, robot, payload_com_radius, reidentify=prior == "auto") if robot is not None else None
+    reidentify = "auto" if prior == "auto" else False
+    rb = model_prior(model, robot, payload_com_radius, reidentify=reidentify) if robot is not None else None
     Y_dev = Y - rb.torque(Q) if rb is not None else Y
     if kernel == "wendland":
         span = np.maximum(Q.max(0) - Q.min(0), 1e-3)
