@@ -561,14 +561,27 @@ def _resolve_robot(robot, first):
         if not hasattr(robot, "rnea") or not hasattr(robot, "joint_names"):
             raise InputError(f"setting 'robot': expected a name, a URDF path or a RobotModel, got {robot!r}")
         return robot
+    log_path = None if getattr(first, "path", None) == "<arrays>" else first
+    if robot is None and (log_path is None or not _names_a_robot(log_path)):
+        return None                         # GP only: Pinocchio is not needed (nor imported)
     from .physics.robot import load_robot
 
-    log_path = None if getattr(first, "path", None) == "<arrays>" else first
     if robot is None:
-        return load_robot(log_path=log_path) if log_path is not None else None
+        return load_robot(log_path=log_path)
     if isinstance(robot, os.PathLike) or str(robot).lower().endswith(".urdf"):
         return load_robot(urdf=robot, log_path=log_path)
     return load_robot(robot=str(robot), log_path=log_path)
+
+
+def _names_a_robot(log) -> bool:
+    """Whether a log (path or RobotLog) names a robot or URDF in its metadata."""
+    if hasattr(log, "metadata") and hasattr(log, "q"):
+        meta = log.metadata
+    else:
+        from .data.logs import read_table_header
+
+        meta = read_table_header(log)[1] if Path(log).is_file() else {"robot": "?"}
+    return bool(meta.get("robot") or meta.get("urdf"))
 
 
 def _robot_spec(robot) -> dict | None:
