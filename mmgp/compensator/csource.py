@@ -310,12 +310,16 @@ def _wendland_consts(comp) -> list[str]:
         zt[k, :, :len(idx)] = comp._zs[idx].T
         zs[k, :len(idx), :n] = comp._zs[idx]
         gam[k, :len(idx), :n] = comp._gamma[idx]
+    # per chunk of LCHUNK leaves, the box around all their points (lower corner, upper corner)
+    real = len(leaves)
+    chunk = np.stack([np.concatenate([lo[:, c:min(c + LCHUNK, real)].min(1), hi[:, c:min(c + LCHUNK, real)].max(1)])
+                      for c in range(0, n_leaf, LCHUNK)])
     ea, ca = comp.profile.terms("A")
     eb, cb = comp.profile.terms("B")
     return [f"#define EA {ea}\n#define EB {eb}\n#define LEAF {LEAF}\n#define LCHUNK {LCHUNK}\n#define NLEAF {n_leaf}\n#define NJP {nj_pad}\n",
             f"static const double S2 = {_num(comp.signal_var)};\n",
             _arr("CA", ca), _arr("CB", cb), _arr("ZT", zt), _arr("ZS", zs), _arr("GAMMA", gam),
-            _arr("LEAF_LO", lo), _arr("LEAF_HI", hi)]
+            _arr("LEAF_LO", lo), _arr("LEAF_HI", hi), _arr("CHUNK_BOX", chunk, 2 * n)]
 
 
 _WENDLAND_C = """
@@ -338,10 +342,26 @@ static double poly(const double *c, int len, double r)
 /* accumulation state of one deviation evaluation */
 struct dev { double qs[NJP], acc[NJP], vs, r2min; int want_tau, want_v; };
 
-/* squared distances d2 from qs to the boxes of leaves k0 .. k0 + LCHUNK - 1. Per joint, the
- * box's term is at most that of any point in it, in floating point too (rounding is monotone, and
- * the sum runs in the same order as a point's), so a box at >= 1 holds points with r >= 1 only:
- * they contribute exactly 0. Branch-free (max, min): which boxes pass is unpredictable */
+/* Boxes around points: per joint, a box's term is at most that of any point in it, in floating
+ * point too (rounding is monotone, and the sum runs in the same order as a point's), so a box at
+ * squared distance >= 1 holds points with r >= 1 only: they contribute exactly 0. The nearest point
+ * of a box is found branch-free (max, min): which boxes pass is unpredictable. */
+
+/* squared distance from qs to box (lower corner lo, upper corner hi) */
+static double box_d2(const double *qs, const double *lo, const double *hi)
+{
+    double d2 = 0.0, c;
+    int i;
+    for (i = 0; i < NJ; ++i) {
+        c = lo[i] > qs[i] ? lo[i] : qs[i];
+        c = c < hi[i] ? c : hi[i];
+        c = qs[i] - c;
+        d2 += c * c;
+    }
+    return d2;
+}
+
+/* squared distances d2 from qs to the boxes of leaves k0 .. k0 + LCHUNK - 1 */
 static void chunk_boxes(const double *qs, int k0, double *d2)
 {
     int i, k;
@@ -378,8 +398,8 @@ static void point(struct dev *s, int p, double r2)
 }
 
 /* the deviation: tau (N*m) and/or V (J); returns the squared distance to the support, capped at 1.
- * Per chunk of leaves: the boxes closer than 1, their points closer than 1 (lists built without
- * branches), then those points' contributions */
+ * Per chunk of leaves whose box is closer than 1: the leaves' boxes closer than 1, their points
+ * closer than 1 (lists built without branches), then those points' contributions */
 static double deviation(const double *q, double *tau, double *v)
 {
     struct dev s;
@@ -391,6 +411,8 @@ static double deviation(const double *q, double *tau, double *v)
     s.want_tau = tau != 0;
     s.want_v = v != 0;
     for (k0 = 0; k0 < NLEAF; k0 += LCHUNK) {
+        const double *box = CHUNK_BOX + 2 * NJ * (k0 / LCHUNK);
+        if (box_d2(s.qs, box, box + NJ) >= 1.0) continue;
         chunk_boxes(s.qs, k0, d2);
         for (j = m = 0; j < LCHUNK; ++j) { sel[m] = k0 + j; m += d2[j] < 1.0; }
         for (j = 0; j < m; ++j) leaf_r2(s.qs, sel[j], r2 + j * LEAF);
