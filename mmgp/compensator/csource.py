@@ -79,7 +79,7 @@ def write_c_source(comp, dir_or_prefix, name: str | None = None):
     body = _prior_body(comp.prior)
     if comp.kind == "curl-free-wendland":
         consts += _wendland_consts(comp)
-        body += _wendland_body()
+        body += _wendland_body(comp.profile.terms("B")[0])
     elif comp.kind == "curl-free-rbf":
         consts += [f"static const double S2 = {_num(comp.signal_var)};\n", _arr("ZS", comp._zs),
                    _arr("GAMMA", comp._gamma)]
@@ -323,14 +323,6 @@ def _wendland_consts(comp) -> list[str]:
 
 
 _WENDLAND_C = """
-static double ipow(double t, int e)
-{
-    double p = 1.0;
-    for (; e > 0; e >>= 1, t *= t)
-        if (e & 1) p *= t;
-    return p;
-}
-
 static double poly(const double *c, int len, double r)
 {
     double p = c[len - 1];
@@ -389,7 +381,7 @@ static void point(struct dev *s, int p, double r2)
     ug = ug0 + ug1;
     r = sqrt(r2);
     t = 1.0 - r;
-    tb = ipow(t, EB);
+    %(t_power_eb)s
     A = S2 * (tb * t) * poly(CA, (int)(sizeof CA / sizeof CA[0]), r);
     if (s->want_v) s->vs += A * ug;
     if (!s->want_tau) return;
@@ -426,7 +418,23 @@ static double deviation(const double *q, double *tau, double *v)
 """
 
 
-def _wendland_body() -> str:
+def _power_code(x: str, out: str, e: int) -> str:
+    """A C block setting ``out = x**e`` (e >= 0) by repeated squaring, written out (the same products
+    as a loop over the bits of e, which cost a tenth of the call)."""
+    if e == 0:
+        return f"{out} = 1.0;"
+    steps, first = [], True
+    while e > 0:
+        if e & 1:
+            steps.append(f"{out} = w;" if first else f"{out} *= w;")
+            first = False
+        e >>= 1
+        if e:
+            steps.append("w *= w;")
+    return f"{{ double w = {x}; " + " ".join(steps) + " }"
+
+
+def _wendland_body(eb: int) -> str:
     # the leaf's distances written out per point, so that they accumulate in registers
     # (a loop over an array of LEAF went through memory: ~10% of the call)
     acc = ", ".join(f"a{b} = 0.0" for b in range(LEAF))
@@ -444,7 +452,7 @@ static void leaf_r2(const double *qs, int k, double *r2)
 {store}}}
 
 """
-    return _WENDLAND_C.replace("%(leaf_r2)s", leaf_r2)
+    return _WENDLAND_C.replace("%(leaf_r2)s", leaf_r2).replace("%(t_power_eb)s", _power_code("t", "tb", eb))
 
 
 
