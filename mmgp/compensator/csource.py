@@ -272,6 +272,7 @@ def kd_leaves(zs: np.ndarray, leaf_size: int = 8) -> list[np.ndarray]:
 # query examines ~300 points in ~38 leaves of 8 (~480 with 16) for ~100 within the radius.
 LEAF = 8
 LCHUNK = 32
+_FAR = 1e300  # padding coordinate: its squared distance to any finite query overflows to inf >= 1
 
 
 def _wendland_consts(comp) -> list[str]:
@@ -279,10 +280,10 @@ def _wendland_consts(comp) -> list[str]:
     n, n_leaf = comp.n_joints, -(-len(leaves) // LCHUNK) * LCHUNK
     # per leaf (padded to whole chunks with boxes far from everything): the tightest box around
     # its points (scaled), joint-major; the points, joint-major (LEAF contiguous values per joint)
-    # and point-major, and their weights point-major; padding points lie far outside every ball
-    # and weigh nothing
-    lo, hi = np.full((n, n_leaf), 1e6), np.full((n, n_leaf), 1e6)
-    zt = np.full((n_leaf, n, LEAF), 1e6)
+    # and point-major, and their weights point-major; padding points lie outside every ball and
+    # weigh nothing
+    lo, hi = np.full((n, n_leaf), _FAR), np.full((n, n_leaf), _FAR)
+    zt = np.full((n_leaf, n, LEAF), _FAR)
     nj_pad = n + n % 2  # point-major rows padded to an even length (z = q = gamma = 0 there)
     zs = np.zeros((n_leaf, LEAF, nj_pad))
     gam = np.zeros((n_leaf, LEAF, nj_pad))
