@@ -242,8 +242,8 @@ def test_c_source_small_supports_match_python(n, N, tmp_path):
     radii = 0.5 * (Z.max(0) - Z.min(0)) + 0.2
     comp = Compensator("curl-free-wendland", Z, rng.normal(size=Z.shape), radii, 0.7)
     lib, _ = _build(comp, tmp_path, "small")
-    Q = np.concatenate([Z, Z + rng.normal(size=Z.shape) * 0.4 * radii, Z.min(0) - radii + rng.random((30, n))
-                        * (Z.max(0) - Z.min(0) + 2 * radii)])
+    Q = np.concatenate([Z, Z + rng.normal(size=Z.shape) * 0.4 * radii, Z.min(0) - 3 * radii + rng.random((30, n))
+                        * (Z.max(0) - Z.min(0) + 6 * radii)])
     tau_py, rho_py = comp.torque(Q, return_region=True)
     V_py = comp.potential(Q)
     assert 0 < np.mean(rho_py < 1) < 1
