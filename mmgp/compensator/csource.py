@@ -186,14 +186,15 @@ static void prior_eval(const double *q, double *tau, double *v)
 """
 
 _PRIOR_C = """
-static void mat_mul(const double *A, const double *B, double *C)
+/* inline: called per joint, and the calls cost ~10% of the prior */
+static inline void mat_mul(const double *A, const double *B, double *C)
 {
     int r, c;
     for (r = 0; r < 3; ++r)
         for (c = 0; c < 3; ++c) C[3 * r + c] = A[3 * r] * B[c] + A[3 * r + 1] * B[3 + c] + A[3 * r + 2] * B[6 + c];
 }
 
-static void mat_vec(const double *A, const double *x, double *y)
+static inline void mat_vec(const double *A, const double *x, double *y)
 {
     int r;
     for (r = 0; r < 3; ++r) y[r] = A[3 * r] * x[0] + A[3 * r + 1] * x[1] + A[3 * r + 2] * x[2];
