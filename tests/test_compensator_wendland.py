@@ -205,6 +205,58 @@ def test_c_source_with_prior_matches_python(with_prior, tmp_path):
         assert abs(lib.ff_storage(qc.ctypes.data_as(dp)) - s_ref) < 1e-10 * s_scale
 
 
+def test_c_source_on_a_trajectory_support_matches_python(tmp_path):
+    """1,000 support points along a random walk (the shape of logged data: the C evaluator's leaf and
+    chunk boxes prune most of them), an even joint count (no row padding), queries on the support
+    points, near them and far away: the C torque, region distance and storage equal numpy's
+    brute force over every support point."""
+    rng = np.random.default_rng(11)
+    Z = np.cumsum(rng.normal(size=(1000, 6)) * 0.05, axis=0)
+    radii = 0.15 * (Z.max(0) - Z.min(0))
+    comp = Compensator("curl-free-wendland", Z, rng.normal(size=Z.shape), radii, 0.3)
+    lib, _ = _build(comp, tmp_path, "traj")
+    Q = np.concatenate([Z[::50], Z[rng.integers(1000, size=200)] + rng.normal(size=(200, 6)) * 0.3 * radii,
+                        Z.min(0) - 3 * radii + rng.random((20, 6)) * (Z.max(0) - Z.min(0) + 6 * radii)])
+    tau_py, rho_py = comp.torque(Q, return_region=True)
+    S_py = comp.storage(Q)
+    within = np.sum(np.sum(((Q[:, None] - Z[None]) / radii) ** 2, 2) < 1, 1)
+    assert within[:220].mean() > 20 and within.max() < 500 and np.any(within == 0)  # many, not all
+    dp = ctypes.POINTER(ctypes.c_double)
+    out = np.zeros(6)
+    scale, s_scale = np.abs(tau_py).max(), np.abs(S_py).max()
+    for q, t_ref, r_ref, s_ref in zip(Q, tau_py, rho_py, S_py):
+        qc = np.ascontiguousarray(q)
+        rho = lib.traj_torque(qc.ctypes.data_as(dp), out.ctypes.data_as(dp))
+        assert np.max(np.abs(out - t_ref)) < 1e-10 * scale
+        assert abs(rho - r_ref) < 1e-12
+        assert abs(lib.traj_storage(qc.ctypes.data_as(dp)) - s_ref) < 1e-10 * s_scale
+    np.testing.assert_array_equal(tau_py[within == 0], 0.0)  # no prior: exactly zero outside
+
+
+@pytest.mark.parametrize("n,N", [(1, 1), (1, 5), (2, 9), (3, 17)])
+def test_c_source_small_supports_match_python(n, N, tmp_path):
+    """Supports that leave the C evaluator's leaves and chunks part empty (padding points), odd and
+    even joint counts: torque, region distance and potential equal numpy's brute force."""
+    rng = np.random.default_rng(n * 100 + N)
+    Z = np.cumsum(rng.normal(size=(N, n)) * 0.1, axis=0)
+    radii = 0.5 * (Z.max(0) - Z.min(0)) + 0.2
+    comp = Compensator("curl-free-wendland", Z, rng.normal(size=Z.shape), radii, 0.7)
+    lib, _ = _build(comp, tmp_path, "small")
+    Q = np.concatenate([Z, Z + rng.normal(size=Z.shape) * 0.4 * radii, Z.min(0) - 3 * radii + rng.random((30, n))
+                        * (Z.max(0) - Z.min(0) + 6 * radii)])
+    tau_py, rho_py = comp.torque(Q, return_region=True)
+    V_py = comp.potential(Q)
+    assert 0 < np.mean(rho_py < 1) < 1
+    dp = ctypes.POINTER(ctypes.c_double)
+    out = np.zeros(n)
+    for q, t_ref, r_ref, v_ref in zip(Q, tau_py, rho_py, V_py):
+        qc = np.ascontiguousarray(q)
+        rho = lib.small_torque(qc.ctypes.data_as(dp), out.ctypes.data_as(dp))
+        assert np.max(np.abs(out - t_ref)) < 1e-10 * np.abs(tau_py).max()
+        assert abs(rho - r_ref) < 1e-12
+        assert abs(lib.small_potential(qc.ctypes.data_as(dp)) - v_ref) < 1e-10 * np.abs(V_py).max()
+
+
 def test_neighbour_budget_is_the_largest_scale_that_keeps_it():
     from mmgp.gp.gradient_field import neighbour_limited_scale
 
