@@ -16,7 +16,7 @@ from sklearn.utils.validation import check_is_fitted
 
 from ._version import __version__
 from .data.folds import windows_for_duration
-from .data.logs import MIN_SAMPLES, RobotLog
+from .data.logs import RobotLog, log_from_arrays, names_a_robot
 from .errors import InputError
 from .gp.hyper import Hyper
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
@@ -514,7 +514,7 @@ def _sources(logs, **arrays) -> list:
     if logs is None:
         if not given:
             raise InputError("nothing to fit: give a log path, a RobotLog, a list of them, or t, q, tau arrays")
-        return [_log_from_arrays(**arrays)]
+        return [log_from_arrays(**arrays)]
     items = list(logs) if isinstance(logs, (list, tuple)) else [logs]
     if not items:
         raise InputError("no logs given")
@@ -524,37 +524,6 @@ def _sources(logs, **arrays) -> list:
     return items
 
 
-def _log_from_arrays(t, q, tau, dq=None, ddq=None) -> RobotLog:
-    """A checked RobotLog from arrays (copies), each bad one named."""
-    if t is None or q is None or tau is None:
-        raise InputError("arrays need at least t, q and tau")
-    t = np.array(t, dtype=np.float64)
-    if t.ndim != 1:
-        raise InputError(f"t must be (T,), got shape {t.shape}", column="t")
-    T = len(t)
-    out = {}
-    for name, a in (("q", q), ("tau", tau), ("dq", dq), ("ddq", ddq)):
-        if a is None:
-            out[name] = None
-            continue
-        a = np.array(a, dtype=np.float64)
-        a = a.reshape(-1, 1) if a.ndim == 1 else a
-        n = out["q"].shape[1] if name != "q" else a.shape[1]
-        if a.ndim != 2 or a.shape != (T, n):
-            raise InputError(f"{name} must be (T, n) = ({T}, {n}) like t and q, got shape {a.shape}", column=name)
-        out[name] = a
-    if T < MIN_SAMPLES:
-        raise InputError(f"too few samples: {T}, at least {MIN_SAMPLES} needed", row=T)
-    for name, a in [("t", t)] + [(k, v) for k, v in out.items() if v is not None]:
-        bad = ~np.isfinite(a.reshape(T, -1)).all(1)
-        if bad.any():
-            raise InputError("NaN or inf", column=name, row=int(np.flatnonzero(bad)[0]))
-    step = np.diff(t) <= 0
-    if step.any():
-        raise InputError("t must be strictly increasing", column="t", row=int(np.flatnonzero(step)[0]) + 1)
-    return RobotLog(path="<arrays>", t=t, q=out["q"], tau=out["tau"], dq=out["dq"], ddq=out["ddq"])
-
-
 def _resolve_robot(robot, first):
     """The RobotModel to use: ``robot`` (name, URDF path or model), else the first log's metadata."""
     if robot is not None and not isinstance(robot, (str, os.PathLike)):
@@ -562,7 +531,7 @@ def _resolve_robot(robot, first):
             raise InputError(f"setting 'robot': expected a name, a URDF path or a RobotModel, got {robot!r}")
         return robot
     log_path = None if getattr(first, "path", None) == "<arrays>" else first
-    if robot is None and (log_path is None or not _names_a_robot(log_path)):
+    if robot is None and (log_path is None or not names_a_robot(log_path)):
         return None                         # GP only: Pinocchio is not needed (nor imported)
     from .physics.robot import load_robot
 
@@ -571,17 +540,6 @@ def _resolve_robot(robot, first):
     if isinstance(robot, os.PathLike) or str(robot).lower().endswith(".urdf"):
         return load_robot(urdf=robot, log_path=log_path)
     return load_robot(robot=str(robot), log_path=log_path)
-
-
-def _names_a_robot(log) -> bool:
-    """Whether a log (path or RobotLog) names a robot or URDF in its metadata."""
-    if hasattr(log, "metadata") and hasattr(log, "q"):
-        meta = log.metadata
-    else:
-        from .data.logs import read_table_header
-
-        meta = read_table_header(log)[1] if Path(log).is_file() else {"robot": "?"}
-    return bool(meta.get("robot") or meta.get("urdf"))
 
 
 def _robot_spec(robot) -> dict | None:

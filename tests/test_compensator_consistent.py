@@ -11,9 +11,10 @@ import pinocchio as pin
 import pytest
 
 from mmgp.physics.consistent import (consistency_problems, first_moment_problems, fit_consistent_parameters,
-                                     fit_point_mass, log_cholesky_jacobian, log_cholesky_to_parameters,
+                                     log_cholesky_jacobian, log_cholesky_to_parameters,
                                      nearest_consistent, parameters_from_pseudo_inertia, parameters_to_log_cholesky,
                                      pseudo_inertia)
+from mmgp.physics.payload import fit_point_mass
 from mmgp.physics.robot import RobotModel
 
 PANDA = [f"panda_joint{i}" for i in range(1, 8)]

@@ -9,7 +9,7 @@ Choices (issue 12):
 * The mean is the rigid-body gravity of the model's ``robot`` (when it has one), re-identified with
   physical consistency from what the model learned, its static nominal torque at its support poses
   (:func:`model_prior`): first a payload on the body of the last joint, the body the EM's payload
-  mean describes (:func:`mmgp.physics.consistent.fit_point_mass`: mass >= 0, centre of mass within
+  mean describes (:func:`mmgp.physics.payload.fit_point_mass`: mass >= 0, centre of mass within
   ``payload_com_radius`` of the joint's origin), then every body's mass and first moment
   (log-Cholesky, ridge towards the nominal URDF plus that payload). The EM's own per-mode payload
   mean is an unconstrained 10-parameter fit (it has come out with negative masses on real data) and
@@ -152,7 +152,7 @@ def model_prior(model: FeedforwardSource, robot, com_radius: float = 0.5, reiden
 
     Data: ``tau = model.nominal_torque(q)`` at the distinct ``support_q_`` rows, and the robot's
     static regressor ``Y(q)`` (gravity is ``Y pi``). First a payload on the last joint's body: the
-    consistent point mass (:func:`~mmgp.physics.consistent.fit_point_mass`, mass >= 0, com within
+    consistent point mass (:func:`~mmgp.physics.payload.fit_point_mass`, mass >= 0, com within
     ``com_radius`` of the joint) that best explains ``tau - Y pi_nominal``. Then, with
     ``reidentify``, every body's parameters by :func:`~mmgp.physics.consistent.fit_consistent_parameters`
     (log-Cholesky: every body stays physical) with a ridge towards the nominal-plus-payload values
@@ -162,7 +162,8 @@ def model_prior(model: FeedforwardSource, robot, com_radius: float = 0.5, reiden
     on a simulated UR5 whose URDF is exact, re-identifying every body from the model's torque moved
     the upper arm's first moments and cost 0.64 N*m at poses far from the data (payload only: 0.07).
     """
-    from ..physics.consistent import fit_consistent_parameters, fit_point_mass
+    from ..physics.consistent import fit_consistent_parameters
+    from ..physics.payload import fit_point_mass
     from ..physics.inertial import point_mass_parameters
 
     Q = np.unique(np.asarray(model.support_q_, dtype=np.float64), axis=0)

@@ -511,3 +511,41 @@ def write_log(path: str | os.PathLike, t: np.ndarray, q: np.ndarray, tau: np.nda
     return path
 
 
+def log_from_arrays(t, q, tau, dq=None, ddq=None) -> RobotLog:
+    """A checked RobotLog from arrays (copies), each bad one named."""
+    if t is None or q is None or tau is None:
+        raise InputError("arrays need at least t, q and tau")
+    t = np.array(t, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"t must be (T,), got shape {t.shape}", column="t")
+    T = len(t)
+    out = {}
+    for name, a in (("q", q), ("tau", tau), ("dq", dq), ("ddq", ddq)):
+        if a is None:
+            out[name] = None
+            continue
+        a = np.array(a, dtype=np.float64)
+        a = a.reshape(-1, 1) if a.ndim == 1 else a
+        n = out["q"].shape[1] if name != "q" else a.shape[1]
+        if a.ndim != 2 or a.shape != (T, n):
+            raise InputError(f"{name} must be (T, n) = ({T}, {n}) like t and q, got shape {a.shape}", column=name)
+        out[name] = a
+    if T < MIN_SAMPLES:
+        raise InputError(f"too few samples: {T}, at least {MIN_SAMPLES} needed", row=T)
+    for name, a in [("t", t)] + [(k, v) for k, v in out.items() if v is not None]:
+        bad = ~np.isfinite(a.reshape(T, -1)).all(1)
+        if bad.any():
+            raise InputError("NaN or inf", column=name, row=int(np.flatnonzero(bad)[0]))
+    step = np.diff(t) <= 0
+    if step.any():
+        raise InputError("t must be strictly increasing", column="t", row=int(np.flatnonzero(step)[0]) + 1)
+    return RobotLog(path="<arrays>", t=t, q=out["q"], tau=out["tau"], dq=out["dq"], ddq=out["ddq"])
+
+
+def names_a_robot(log) -> bool:
+    """Whether a log (path or RobotLog) names a robot or URDF in its metadata."""
+    if hasattr(log, "metadata") and hasattr(log, "q"):
+        meta = log.metadata
+    else:
+        meta = read_table_header(log)[1] if Path(log).is_file() else {"robot": "?"}
+    return bool(meta.get("robot") or meta.get("urdf"))

@@ -8,8 +8,14 @@ mass* m at c has ``pi = point_mass_parameters(m, c)``: nonlinear in c only throu
 it is linear in ``(m, m c)``; re-estimating ``c0 = (m c) / m`` (:func:`com_from_moments`) and
 refitting converges to the point-mass fit. Users:
 
-* :func:`fit_payload`: a payload on a named link from a residual, by least squares (started from
-  the linearisation at c0 = 0, then the exact point-mass model; or all 10 parameters).
+* :func:`fit_point_mass`: the constrained core, on data linear in ``(m, h = m c)`` (a static
+  regressor's first four columns of a body, or the linearisation at c0 = 0): ``m >= 0`` and the
+  centre of mass inside a ball, a convex problem (a second-order cone). The compensator's
+  rigid-body prior fits its payload with it directly (gravity data: exact, the inertia columns of
+  a static regressor vanish).
+* :func:`fit_payload`: a payload on a named link from a residual of the full dynamics (started
+  from :func:`fit_point_mass` on the linearisation at c0 = 0, then the exact point-mass model;
+  or all 10 parameters).
 * the diagnosis's ``payload`` effect (``mmgp.physics.effects.Payload``): the same linearised
   columns inside the effect library, with the centre of mass re-estimated between fits.
 * the EM's payload mean (``mean_basis: payload``) fits all 10 parameters of the distal body,
@@ -18,7 +24,7 @@ refitting converges to the point-mass fit. Users:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -69,6 +75,92 @@ class PayloadFit:
     def params(self) -> dict:
         """Contract ``payload`` params (CONTRACT section 3)."""
         return {"link": self.link, "mass": float(self.mass), "com": [float(c) for c in self.com]}
+
+
+@dataclass
+class PointMassFit:
+    """A point mass fitted by :func:`fit_point_mass`.
+
+    ``mass`` (kg) >= 0; ``com`` (3,) m, with ``|com - com_centre| <= com_radius``; ``residual_rms``
+    (units of ``b``); ``active``: the constraints the optimum touches (``"mass>=0"``,
+    ``"com radius"``); ``unconstrained``: the free least-squares ``(m, h)`` (4,), for the record.
+    """
+
+    mass: float
+    com: np.ndarray
+    residual_rms: float
+    active: list[str] = field(default_factory=list)
+    unconstrained: np.ndarray | None = None
+
+    def first_moments(self) -> np.ndarray:
+        """``[m, m c_x, m c_y, m c_z]`` (4,)."""
+        return np.concatenate([[self.mass], self.mass * self.com])
+
+
+def fit_point_mass(A, b, *, com_centre=(0.0, 0.0, 0.0), com_radius: float = 0.5) -> PointMassFit:
+    """Least squares ``min |A [m, h] - b|^2`` over ``m >= 0``, ``|h / m - com_centre| <= com_radius``.
+
+    ``A`` (M, 4): the columns of ``m`` and ``h = m c`` (e.g. the first four columns of a body's
+    static regressor, in which the torque is linear in (m, h)); ``b`` (M,). The feasible set is the
+    second-order cone ``|h - m c0| <= r m``, so the problem is convex: SLSQP from the free optimum's
+    projection and from the centre finds its minimum (a test checks it against a grid). A mass of
+    exactly 0 is returned with ``com = com_centre``.
+    """
+    from scipy.optimize import minimize
+
+    A = np.asarray(A, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1)
+    c0 = np.asarray(com_centre, dtype=np.float64).reshape(3)
+    r = float(com_radius)
+    if not r > 0:
+        raise ValueError("com_radius must be positive")
+    # variables z = (m, w), h = m c0 + r w, feasible iff |w| <= m; columns scaled to unit norm
+    T = np.zeros((4, 4))
+    T[0, 0] = 1.0
+    T[1:, 0] = c0
+    T[1:, 1:] = r * np.eye(3)
+    B = A @ T
+    scale = np.linalg.norm(B, axis=0)
+    scale[scale == 0] = 1.0
+    Bs = B / scale
+    G, g, bb = Bs.T @ Bs, Bs.T @ b, float(b @ b)
+    free = np.linalg.lstsq(Bs, b, rcond=None)[0]
+
+    def f(zs):
+        return float(zs @ G @ zs - 2 * g @ zs + bb), 2 * (G @ zs - g)
+
+    def cone(zs):  # m^2 - |w|^2 >= 0 and m >= 0 together describe |w| <= m
+        z = zs / scale
+        return np.array([z[0], z[0] ** 2 - z[1:] @ z[1:]])
+
+    def cone_jac(zs):
+        z = zs / scale
+        return np.array([[1.0, 0, 0, 0], [2 * z[0], *(-2 * z[1:])]]) / scale
+
+    z_free = free / scale
+    starts = [free]
+    if not (cone(free) >= 0).all():
+        m = max(z_free[0], np.linalg.norm(z_free[1:]), 1e-12)
+        wn = np.linalg.norm(z_free[1:])
+        starts = [np.concatenate([[m], z_free[1:] * (m / wn if wn > m else 1.0)]) * scale,
+                  np.array([max(z_free[0], 1e-6), 0, 0, 0]) * scale]
+    best = None
+    for s in starts:
+        res = minimize(f, s, jac=True, method="SLSQP", options={"maxiter": 500, "ftol": 1e-15},
+                       constraints=[{"type": "ineq", "fun": cone, "jac": cone_jac}])
+        if best is None or res.fun < best.fun:
+            best = res
+    z = best.x / scale
+    m = max(float(z[0]), 0.0)
+    w = z[1:]
+    if np.linalg.norm(w) > m:  # SLSQP's constraint tolerance: pull back onto the cone
+        w = w * (m / np.linalg.norm(w))
+    com = c0 + (r * w / m if m > 0 else 0.0)
+    active = (["mass>=0"] if m <= 1e-12 * max(1.0, abs(z_free[0])) else []) + (
+        ["com radius"] if m > 0 and np.linalg.norm(w) >= m * (1 - 1e-6) else [])
+    x = A @ np.concatenate([[m], m * com]) - b
+    return PointMassFit(mass=m, com=com, residual_rms=float(np.sqrt(np.mean(x * x))), active=active,
+                        unconstrained=T @ z_free)
 
 
 @dataclass
@@ -147,9 +239,9 @@ def _fit_point_mass(s: _System) -> PayloadFit:
     from scipy.optimize import least_squares
 
     # the linearisation at com 0 (the first four regressor columns, no rotational inertia of
-    # the payload about the link origin) gives the start; then the exact point-mass model
-    x0 = s.lstsq(np.arange(4))
-    z0 = np.concatenate([[max(x0[0], 0.0)], com_from_moments(x0[0], x0[1:4])])
+    # the payload about the link origin), constrained, gives the start; then the exact model
+    start = fit_point_mass(s.A[:, :4], s.b, com_radius=MAX_COM_NORM)
+    z0 = np.concatenate([[start.mass], start.com])
 
     def fun(z):
         return s.A @ point_mass_parameters(z[0], z[1:]) - s.b
