@@ -494,7 +494,7 @@ class MultimodalGP(BaseEstimator):
         model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
         model.basis_kind_ = meta.get("mean_basis")
         model.robot_spec_ = meta.get("robot") or None
-        model.robot_ = _robot_from_spec(model.robot_spec_)
+        model.robot_ = _robot_from_spec(model.robot_spec_, model_dir / "model.json")
         model.semiparametric_ = model.semiparametric if model.robot_spec_ else "none"
         model._gps = [None] * K
         return model
@@ -578,12 +578,16 @@ def _robot_spec(robot) -> dict | None:
     return {"robot": name, "urdf": None if name else str(robot.urdf_path), "joint_names": robot.joint_names}
 
 
-def _robot_from_spec(spec):
+def _robot_from_spec(spec, meta_path: Path):
+    """The robot a saved model names; one it cannot be built from is refused naming ``meta_path``."""
     if not spec:
         return None
     from .physics.robot import load_robot
 
-    return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
+    try:
+        return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
+    except InputError as exc:
+        raise InputError(f"'robot' (the model this one was trained with): {exc}", file=meta_path) from None
 
 
 def _labels_frame(sem, logs: Sequence[RobotLog]):

@@ -67,14 +67,22 @@ def _check_meta(meta: dict, path: Path) -> None:
         raise bad("joint_names", "a non-empty list of joint names")
     if not isinstance(meta.get("settings"), dict):
         raise bad("settings", "an object of training settings")
-    if meta.get("robot") is not None and not isinstance(meta["robot"], dict):
-        raise bad("robot", "an object naming the robot, or null")
+    if meta.get("robot") is not None and not _robot_spec_ok(meta["robot"]):
+        raise bad("robot", "an object with 'robot' (a name) or 'urdf' (a path) and 'joint_names' (names), or null")
     kinds = meta.get("gp_kinds")
     if kinds is not None and (not isinstance(kinds, list) or len(kinds) != K
                               or not all(k in ("exact", "sgpr", "subset") for k in kinds)):
         raise bad("gp_kinds", f"a list of {K} of 'exact', 'sgpr', 'subset'")
     if meta.get("mean_basis") not in (None, "payload", "rbd"):
         raise bad("mean_basis", "'payload', 'rbd' or null")
+
+
+def _robot_spec_ok(spec) -> bool:
+    if not isinstance(spec, dict):
+        return False
+    robot, urdf, names = spec.get("robot"), spec.get("urdf"), spec.get("joint_names")
+    text = (robot is None or isinstance(robot, str)) and (urdf is None or isinstance(urdf, str))
+    return text and (names is None or isinstance(names, list) and all(isinstance(s, str) for s in names))
 
 
 def _finite(arrays: dict, key: str, path: Path, shape: tuple) -> np.ndarray:
