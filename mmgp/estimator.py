@@ -587,7 +587,7 @@ def _robot_from_spec(spec, meta_path: Path):
     try:
         return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
     except InputError as exc:
-        raise InputError(f"'robot' (the model this one was trained with): {exc}", file=meta_path) from None
+        raise InputError(f"'robot' (the rigid-body model it was trained with): {exc}", file=meta_path) from None
 
 
 def _labels_frame(sem, logs: Sequence[RobotLog]):

@@ -163,8 +163,53 @@ def test_truncated_compensator_file(base, tmp_path, suffix):
     cut = tmp_path / f"cut{suffix}"
     cut.write_bytes(full.read_bytes()[: len(full.read_bytes()) // 2])
     one_error_line(run("check-passivity", cut), names=cut)
-    with pytest.raises(ValueError, match=str(cut)):
+    with pytest.raises(InputError, match="not a readable mmgp-compensator file") as info:
         load_compensator(cut)
+    assert info.value.file == str(cut)
+
+
+def _not_a_compensator(base, path: Path) -> None:
+    if path.suffix == ".npz":
+        shutil.copy(base / "model" / "model.npz", path)  # an NPZ archive, but a saved model's
+    else:
+        path.write_text("t,q_0,tau_0\n0,1,2\n")
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz", ".yaml"])
+def test_file_that_is_not_a_compensator_at_all(base, tmp_path, suffix):
+    path = tmp_path / f"other{suffix}"
+    _not_a_compensator(base, path)
+    before = path.read_bytes()
+    with pytest.raises(InputError) as info:
+        load_compensator(path)
+    assert info.value.file == str(path) and "mmgp-compensator" in info.value.message
+    assert isinstance(info.value, ValueError)  # callers catching ValueError still catch it
+    one_error_line(run("check-passivity", path), names=path)
+    assert path.read_bytes() == before
+
+
+def test_compensator_with_another_storage_offset(base, tmp_path):
+    d = json.loads((base / "comp.json").read_text())
+    true_offset = d["storage_offset"]
+    d["storage_offset"] = true_offset + 1.0
+    path = tmp_path / "offset.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError) as info:
+        load_compensator(path)
+    assert info.value.file == str(path)
+    assert "'storage_offset'" in info.value.message and repr(true_offset) in info.value.message
+    line = one_error_line(run("check-passivity", path), names=path)
+    assert "storage_offset" in line
+
+
+def test_compensator_that_cannot_be_rebuilt_is_an_input_error(base, tmp_path):
+    d = json.loads((base / "comp.json").read_text())
+    d["kernel"] = {"smoothness": "three"}
+    path = tmp_path / "kernel.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError, match="cannot rebuild the compensator") as info:
+        load_compensator(path)
+    assert info.value.file == str(path)
 
 
 def test_valid_compensator_passes_check(base):
@@ -272,6 +317,63 @@ def test_malformed_urdf_and_invalid_yaml_are_one_line(tmp_path):
     assert len(lines) == 1 and str(urdf) in lines[0] and "Line number=4" in lines[0], proc.stderr
     line = one_error_line(run("train", LOG, "--config", yml, "--out", tmp_path / "o", "--quiet"), names=yml)
     assert "not valid YAML" in line
+
+
+BAD_SETTING_VALUES = {
+    "negative count": ("train", "train:\n  max_sweeps: -3\n", "max_sweeps"),
+    "text for a number": ("train", "train:\n  push_s: soon\n", "push_s"),
+    "unknown choice": ("diagnose", "diagnose:\n  separate: sideways\n", "separate"),
+    "export count of zero": ("export", "export:\n  max_support: 0\n", "max_support"),
+    "export count as text": ("export", "export:\n  max_support: many\n", "max_support"),
+    "export negative seed": ("export", "export:\n  seed: -1\n", "seed"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_SETTING_VALUES))
+def test_bad_setting_value_names_the_settings_file(base, tmp_path, case):
+    command, text, key = BAD_SETTING_VALUES[case]
+    yml = tmp_path / "settings.yaml"
+    yml.write_text(text)
+    first = {"train": [LOG], "diagnose": [LOG, "--urdf", URDF], "export": [base / "model"]}[command]
+    out = tmp_path / ("comp.json" if command == "export" else "out")
+    res = run(command, *first, "--config", yml, "--out", out, *(["--quiet"] if command != "export" else []))
+    line = one_error_line(res, names=yml)
+    assert f"setting '{key}'" in line
+    assert not out.exists() and yml.read_text() == text
+
+
+def test_bad_flag_value_is_not_blamed_on_the_settings_file(tmp_path):
+    from mmgp.config import load_settings
+
+    yml = tmp_path / "settings.yaml"
+    yml.write_text("train:\n  max_sweeps: -3\n  seed: 2\n")
+    # the flag replaces the file's bad value: accepted
+    assert load_settings(yml, "train", MultimodalGP, max_sweeps=4) == {"max_sweeps": 4, "seed": 2}
+    yml.write_text("train:\n  seed: 2\n")
+    with pytest.raises(InputError, match="setting 'max_sweeps'") as info:
+        load_settings(yml, "train", MultimodalGP, max_sweeps=0)
+    assert info.value.file is None
+
+
+ROBOT_DAMAGES = {
+    "unknown robot": ({"robot": "no_such_robot", "urdf": None, "joint_names": ["j0"]}, "no_such_robot"),
+    "missing URDF": ({"robot": None, "urdf": "/nonexistent/arm.urdf", "joint_names": ["j0"]}, "arm.urdf"),
+    "robot not a name": ({"robot": 7, "urdf": None}, "'robot'"),
+}
+
+
+@pytest.mark.parametrize("damage", list(ROBOT_DAMAGES))
+def test_saved_model_naming_a_robot_that_cannot_be_loaded(base, tmp_path, damage):
+    spec, expected = ROBOT_DAMAGES[damage]
+    model = damaged_copy(base / "model", tmp_path / "model", lambda d: _edit_json(d / "model.json", robot=spec))
+    meta_path = model / "model.json"
+    before = meta_path.read_bytes()
+    with pytest.raises(InputError) as info:
+        MultimodalGP.load(model)
+    assert info.value.file == str(meta_path) and expected in info.value.message
+    res = run("predict", model, LOG, "--out", tmp_path / "p.parquet")
+    assert expected in one_error_line(res, names=meta_path)
+    assert meta_path.read_bytes() == before and not (tmp_path / "p.parquet").exists()
 
 
 def test_quiet_train_prints_nothing_before_its_error(tmp_path):
