@@ -122,7 +122,7 @@ def test_compare_urdf_corruptions(compare_inputs, tmp_path_factory, data):
 
 @fuzz_settings(6)
 @given(max_train=st.one_of(st.integers(-3, 3), st.sampled_from(["1e3", "many", "", "10000000"])),
-       device=st.sampled_from(["cpu", "cuda:7", "gpu", "", "mps", "cpu:0"]))
+       device=st.sampled_from(["cpu", "cuda:7", "gpu", "", "mps", "cpu:0", "meta", "xpu", "auto"]))
 def test_compare_option_values(compare_inputs, tmp_path_factory, max_train, device):
     out = tmp_path_factory.mktemp("c") / "out"
     clean_compare(compare_inputs / "log.parquet", compare_inputs / "lever.urdf", out,

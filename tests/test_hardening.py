@@ -376,6 +376,19 @@ def test_saved_model_naming_a_robot_that_cannot_be_loaded(base, tmp_path, damage
     assert meta_path.read_bytes() == before and not (tmp_path / "p.parquet").exists()
 
 
+@pytest.mark.parametrize("device", ["mps", "meta"])
+def test_device_torch_knows_but_the_gps_do_not_run_on(tmp_path, device):
+    res = run("compare", LOG, "--urdf", URDF, "--out", tmp_path / "out", "--quiet", "--device", device)
+    assert f"device '{device}' is not supported" in one_error_line(res)
+    assert not (tmp_path / "out").exists()
+
+
+def test_compare_with_too_few_training_samples_is_a_usage_error(tmp_path):
+    res = run("compare", LOG, "--urdf", URDF, "--out", tmp_path / "out", "--quiet", "--max-train", "0")
+    assert res.exit_code == 2 and isinstance(res.exception, SystemExit) and "--max-train" in res.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_quiet_train_prints_nothing_before_its_error(tmp_path):
     path = tmp_path / "dup.csv"
     path.write_text("t,q_0,tau_0,q_0\n0,0,0,0\n")
