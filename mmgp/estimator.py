@@ -472,7 +472,7 @@ class MultimodalGP(BaseEstimator):
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
         format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
-        from .models.saved import read_model_arrays, read_model_meta
+        from .models.saved import read_model_arrays, read_model_meta, read_model_robot
 
         model_dir = Path(model_dir)
         meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, MODEL_VERSION))
@@ -494,7 +494,7 @@ class MultimodalGP(BaseEstimator):
         model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
         model.basis_kind_ = meta.get("mean_basis")
         model.robot_spec_ = meta.get("robot") or None
-        model.robot_ = _robot_from_spec(model.robot_spec_, model_dir / "model.json")
+        model.robot_ = read_model_robot(model.robot_spec_, model_dir / "model.json")
         model.semiparametric_ = model.semiparametric if model.robot_spec_ else "none"
         model._gps = [None] * K
         return model
@@ -576,18 +576,6 @@ def _robot_spec(robot) -> dict | None:
         return None
     name = getattr(robot, "name", None)
     return {"robot": name, "urdf": None if name else str(robot.urdf_path), "joint_names": robot.joint_names}
-
-
-def _robot_from_spec(spec, meta_path: Path):
-    """The robot a saved model names; one it cannot be built from is refused naming ``meta_path``."""
-    if not spec:
-        return None
-    from .physics.robot import load_robot
-
-    try:
-        return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
-    except InputError as exc:
-        raise InputError(f"'robot' (the rigid-body model it was trained with): {exc}", file=meta_path) from None
 
 
 def _labels_frame(sem, logs: Sequence[RobotLog]):

@@ -3,7 +3,7 @@
 Every way a saved model can be damaged (a truncated or missing file, text that is not JSON, a key
 of the wrong type, an array missing, of another shape or not finite) ends in one
 :class:`~mmgp.errors.InputError` naming the file and what was expected, before any GP is built
-from it. :class:`mmgp.MultimodalGP.load` uses both readers.
+from it. :class:`mmgp.MultimodalGP.load` uses these readers.
 """
 from __future__ import annotations
 
@@ -139,3 +139,17 @@ def read_model_arrays(model_dir: Path, meta: dict) -> dict:
         if np.any(out["friction_scale"] <= 0):
             raise InputError("array 'friction_scale' must be positive", file=path)
     return out
+
+
+def read_model_robot(spec: dict | None, meta_path: Path):
+    """The RobotModel a saved model names in ``model.json`` (``spec``: its checked "robot" entry),
+    or None; one that cannot be loaded here (an unknown name, a missing URDF) is refused naming
+    ``meta_path``."""
+    if not spec:
+        return None
+    from ..physics.robot import load_robot
+
+    try:
+        return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
+    except InputError as exc:
+        raise InputError(f"'robot' (the rigid-body model it was trained with): {exc}", file=meta_path) from None
