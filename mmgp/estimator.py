@@ -6,6 +6,7 @@ It is the one way to train: ``mmgp train`` parses its options into the construct
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Sequence
@@ -504,7 +505,12 @@ class MultimodalGP(BaseEstimator):
 # Inputs
 
 def _is_number(x) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and np.isfinite(x)
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
+    try:  # a Python int beyond int64 is no input np.isfinite takes; one beyond 1e308 no float
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
 
 
 def _sources(logs, **arrays) -> list:

@@ -77,6 +77,7 @@ MODEL_DAMAGES = {
     "joint names not a list": (lambda d: _edit_json(d / "model.json", joint_names="q"), "joint_names"),
     "unknown setting": (lambda d: _edit_json(d / "model.json", settings={"colour": 1}), "settings"),
     "bad setting value": (lambda d: _edit_json(d / "model.json", settings={"max_sweeps": "many"}), "max_sweeps"),
+    "setting beyond int64": (lambda d: _edit_json(d / "model.json", settings={"push_s": -2 ** 63 - 1}), "push_s"),
     "array missing": (lambda d: _edit_npz(d / "model.npz", drop="Y_0"), "Y_0"),
     "array of another shape": (lambda d: _edit_npz(d / "model.npz", X_0=np.zeros((3, 2))), "X_0"),
     "array not finite": (lambda d: _edit_npz(d / "model.npz", noise_var_0=np.array([np.nan])), "noise_var_0"),
@@ -326,6 +327,7 @@ BAD_SETTING_VALUES = {
     "export count of zero": ("export", "export:\n  max_support: 0\n", "max_support"),
     "export count as text": ("export", "export:\n  max_support: many\n", "max_support"),
     "export negative seed": ("export", "export:\n  seed: -1\n", "seed"),
+    "integer beyond int64": ("train", "train:\n  stay_prob: -9223372036854775809\n", "stay_prob"),
 }
 
 
