@@ -62,7 +62,9 @@ def assert_clean(reader: Callable[[Path], object], path: Path, also: tuple = ())
         msg = str(err)
         assert "\n" not in msg and "\r" not in msg, msg
         assert err.file in {str(p) for p in inputs}, msg
-        event("InputError: " + re.sub(r"\d+", "N", re.split(r"[:(]", err.message)[0])[:50].strip())
+        label = re.sub(r"\d+", "N", re.split(r"[:(]", err.message)[0])[:50].strip()
+        # a message may quote a lone surrogate from the input; hypothesis's statistics need UTF-8
+        event("InputError: " + label.encode("utf-8", "backslashreplace").decode())
         result = None
     else:
         event("read")

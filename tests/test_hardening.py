@@ -213,6 +213,32 @@ def test_compensator_that_cannot_be_rebuilt_is_an_input_error(base, tmp_path):
     assert info.value.file == str(path)
 
 
+def _damage_npy_header(src: Path, dst: Path) -> Path:
+    """``src`` (an NPZ) with the first array's .npy header made unbalanced: NumPy's header parser
+    (Python's tokenizer) raised TokenError, which no reader caught (found by the random fuzz)."""
+    import zipfile
+
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for i, info in enumerate(zin.infolist()):
+            data = zin.read(info)
+            zout.writestr(info, data.replace(b"{'descr'", b"(('descr'", 1) if i == 0 else data)
+    return dst
+
+
+def test_npy_header_the_tokenizer_fails_on(base, tmp_path):
+    export = tmp_path / "full.npz"
+    assert run("export", base / "model", "--out", export).exit_code == 0
+    comp = _damage_npy_header(export, tmp_path / "comp.npz")
+    with pytest.raises(InputError, match="not a readable mmgp-compensator file") as info:
+        load_compensator(comp)
+    assert info.value.file == str(comp)
+    model = damaged_copy(base / "model", tmp_path / "model", lambda d: (d / "model.npz").unlink())
+    _damage_npy_header(base / "model" / "model.npz", model / "model.npz")
+    with pytest.raises(InputError, match="model.npz is damaged") as info:
+        MultimodalGP.load(model)
+    assert info.value.file == str(model / "model.npz")
+
+
 def test_valid_compensator_passes_check(base):
     res = run("check-passivity", base / "comp.json", "--configs", "20", "--loops", "5")
     assert res.exit_code == 0, res.output

@@ -8,6 +8,7 @@ from it. :class:`mmgp.MultimodalGP.load` uses these readers.
 from __future__ import annotations
 
 import json
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -16,7 +17,9 @@ import numpy as np
 
 from ..errors import InputError, describe
 
-_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+# SyntaxError / TokenError: NumPy parses an .npy header with Python's tokenizer, and a damaged one fails there
+_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, SyntaxError,
+               tokenize.TokenError)
 
 
 def _v1_settings(meta: dict, path: Path) -> dict:
