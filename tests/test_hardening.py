@@ -417,6 +417,14 @@ def test_compare_with_too_few_training_samples_is_a_usage_error(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_compare_on_a_log_too_short_for_its_folds(tmp_path):
+    short = tmp_path / "short.csv"
+    pd.read_parquet(LOG).iloc[:10].to_csv(short, index=False)
+    res = run("compare", short, "--urdf", URDF, "--out", tmp_path / "out", "--quiet")
+    assert "too short to compare" in one_error_line(res, names=short)
+    assert not (tmp_path / "out").exists()
+
+
 def test_quiet_train_prints_nothing_before_its_error(tmp_path):
     path = tmp_path / "dup.csv"
     path.write_text("t,q_0,tau_0,q_0\n0,0,0,0\n")
