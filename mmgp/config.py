@@ -8,13 +8,15 @@ A settings file has top-level sections, each holding the keyword arguments of on
 - ``export:``   :meth:`mmgp.MultimodalGP.to_compensator` (``mmgp export``)
 
 Each setting is documented once, where it is a parameter (the class or method docstring). This
-module checks names only; the values are checked by whoever receives them (``fit`` raises an
-``InputError`` naming the setting).
+module checks the names, and has the values checked when they are loaded (by the class's own
+validation, or against a function's defaults) so that a refusal names the file with the setting.
 """
 from __future__ import annotations
 
 import difflib
 import inspect
+import math
+import re
 from pathlib import Path
 from typing import Any, Callable
 
@@ -79,7 +81,9 @@ def load_settings(path: str | Path | None, section: str, target: type | Callable
     with the ``overrides`` that are not None (command-line flags) on top.
 
     Every key, in the file or in ``overrides``, must be a parameter of ``target`` (see
-    :func:`parameter_names`); an unknown one is refused naming it and the known ones.
+    :func:`parameter_names`); an unknown one is refused naming it and the known ones. The values
+    are checked here too (:func:`check_values`), so that a bad value read from the file is refused
+    naming the file as well as the setting.
     Example: ``MultimodalGP(**load_settings("configs/default.yaml", "train", MultimodalGP, seed=3))``.
     """
     if section not in SECTIONS:
@@ -89,9 +93,60 @@ def load_settings(path: str | Path | None, section: str, target: type | Callable
     for key in values:
         if key not in known:
             raise _unknown(f"{section} setting", str(key), known, file=path)
+    from_file = set(values)
     for key, value in overrides.items():
         if key not in known:
             raise ValueError(f"{key!r} is not a parameter of {getattr(target, '__qualname__', target)}")
         if value is not None:
             values[key] = value
+            from_file.discard(key)
+    if path is not None:
+        check_values(target, values, file=path, from_file=from_file)
     return values
+
+
+_SETTING = re.compile(r"setting '([^']+)'")
+
+
+def check_values(target: type | Callable, values: dict, file=None, from_file=None) -> None:
+    """Refuse a bad value in ``values`` (settings of ``target``) with one :class:`InputError`
+    naming the setting, and ``file`` when the value came from it (``from_file``: those keys; all
+    when None).
+
+    A class is asked itself: its ``_validate`` (or ``_check``) method on an instance built from
+    ``values``, whose refusals start with ``setting 'NAME'``. A function's values are checked
+    against its defaults: where the default is a bool the value must be true or false, an
+    integer an integer no smaller than the default or 1 (counts are positive, seeds >= 0), a
+    float a finite number.
+    """
+    from_file = set(values) if from_file is None else set(from_file)
+    try:
+        check = getattr(target, "_validate", None) or getattr(target, "_check", None)
+        if isinstance(target, type) and check is not None:
+            check(target(**values))
+        elif not isinstance(target, type):
+            _check_by_defaults(target, values)
+    except InputError as exc:
+        key = _SETTING.match(exc.message)
+        if file is not None and exc.file is None and key is not None and key.group(1) in from_file:
+            raise InputError(exc.message, file=file) from None
+        raise
+
+
+def _check_by_defaults(target: Callable, values: dict) -> None:
+    defaults = {p.name: p.default for p in inspect.signature(target).parameters.values()}
+    for key, value in values.items():
+        default = defaults.get(key, inspect.Parameter.empty)
+        if isinstance(default, bool):
+            ok, expected = isinstance(value, bool), "true or false"
+        elif isinstance(default, int):
+            low = min(default, 1)
+            ok = isinstance(value, int) and not isinstance(value, bool) and value >= low
+            expected = "a positive integer" if low == 1 else f"an integer >= {low}"
+        elif isinstance(default, float):
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            expected = "a finite number"
+        else:
+            continue
+        if not ok:
+            raise InputError(f"setting '{key}': expected {expected}, got {value!r}")

@@ -6,6 +6,7 @@ It is the one way to train: ``mmgp train`` parses its options into the construct
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Sequence
@@ -472,7 +473,7 @@ class MultimodalGP(BaseEstimator):
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
         format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
-        from .models.saved import read_model_arrays, read_model_meta
+        from .models.saved import read_model_arrays, read_model_meta, read_model_robot
 
         model_dir = Path(model_dir)
         meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, MODEL_VERSION))
@@ -494,7 +495,7 @@ class MultimodalGP(BaseEstimator):
         model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
         model.basis_kind_ = meta.get("mean_basis")
         model.robot_spec_ = meta.get("robot") or None
-        model.robot_ = _robot_from_spec(model.robot_spec_)
+        model.robot_ = read_model_robot(model.robot_spec_, model_dir / "model.json")
         model.semiparametric_ = model.semiparametric if model.robot_spec_ else "none"
         model._gps = [None] * K
         return model
@@ -504,7 +505,12 @@ class MultimodalGP(BaseEstimator):
 # Inputs
 
 def _is_number(x) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and np.isfinite(x)
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
+    try:  # a Python int beyond int64 is no input np.isfinite takes; one beyond 1e308 no float
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
 
 
 def _sources(logs, **arrays) -> list:
@@ -547,14 +553,6 @@ def _robot_spec(robot) -> dict | None:
         return None
     name = getattr(robot, "name", None)
     return {"robot": name, "urdf": None if name else str(robot.urdf_path), "joint_names": robot.joint_names}
-
-
-def _robot_from_spec(spec):
-    if not spec:
-        return None
-    from .physics.robot import load_robot
-
-    return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
 
 
 def _labels_frame(sem, logs: Sequence[RobotLog]):

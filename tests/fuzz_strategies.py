@@ -40,21 +40,35 @@ def digest(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def assert_clean(reader: Callable[[Path], object], path: Path):
+def digests(paths) -> dict[str, str | None]:
+    """The digest of every file under ``paths`` (files or folders; None for a missing path)."""
+    out = {}
+    for path in map(Path, paths):
+        files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+        for f in files:
+            out[str(f)] = digest(f) if f.is_file() else None
+    return out
+
+
+def assert_clean(reader: Callable[[Path], object], path: Path, also: tuple = ()):
     """Call ``reader(path)``: returns its result, or None after a clean InputError. Anything
-    else fails the test, as does a change of the file or a message that is not one line."""
-    before = digest(path)
+    else fails the test, as does a change of the file (or of the files and folders in ``also``,
+    further inputs the error may name too) or a message that is not one line."""
+    inputs = (path, *also)
+    before = digests(inputs)
     try:
         result = reader(path)
     except InputError as err:
         msg = str(err)
         assert "\n" not in msg and "\r" not in msg, msg
-        assert err.file == str(path), msg
-        event("InputError: " + re.sub(r"\d+", "N", re.split(r"[:(]", err.message)[0])[:50].strip())
+        assert err.file in {str(p) for p in inputs}, msg
+        label = re.sub(r"\d+", "N", re.split(r"[:(]", err.message)[0])[:50].strip()
+        # a message may quote a lone surrogate from the input; hypothesis's statistics need UTF-8
+        event("InputError: " + label.encode("utf-8", "backslashreplace").decode())
         result = None
     else:
         event("read")
-    assert digest(path) == before, "the reader changed its input"
+    assert digests(inputs) == before, "the reader changed its input"
     return result
 
 

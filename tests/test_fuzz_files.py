@@ -58,21 +58,9 @@ def check_loaded(comp: Compensator) -> None:
 
 
 def clean_compensator(path: Path) -> None:
-    """``load_compensator``: an InputError naming the file, or the evaluator's own ValueError
-    for a file it cannot read or whose storage offset disagrees with its weights (also "file F:
-    ..." on one line; the command line prints both), or a compensator passing :func:`check_loaded`."""
-    def reader(p):
-        try:
-            return load_compensator(p)
-        except InputError:
-            raise
-        except ValueError as exc:
-            msg = str(exc)
-            assert msg.startswith(f"file {p}: ") and "\n" not in msg, msg
-            event("ValueError: " + msg[len(f"file {p}: "):][:30])
-            return None
-
-    comp = assert_clean(reader, path)
+    """``load_compensator``: an InputError naming the file (also for a file it cannot read or whose
+    storage offset disagrees with its weights), or a compensator passing :func:`check_loaded`."""
+    comp = assert_clean(load_compensator, path)
     if comp is not None:
         check_loaded(comp)
 
@@ -165,13 +153,9 @@ def clean_model(folder: Path) -> None:
     else:
         n = len(model.joint_names_)
         q = np.full((3, n), 0.5)
-        try:
-            mean, std = model.predict(q, np.zeros_like(q), np.zeros_like(q))
-        except InputError as err:  # e.g. a robot named in model.json that is not installed
-            event("InputError at predict: " + err.message[:30])
-        else:
-            assert np.all(np.isfinite(mean)) and np.all(std > 0)
-            event("loaded")
+        mean, std = model.predict(q, np.zeros_like(q), np.zeros_like(q))
+        assert np.all(np.isfinite(mean)) and np.all(std > 0)
+        event("loaded")
     assert [digest(p) if p.exists() else None for p in files] == before, "the reader changed its input"
 
 
@@ -215,15 +199,11 @@ DEFAULT_YAML = (ROOT / "configs/default.yaml").read_text()
 
 
 def clean_settings(path: Path) -> None:
-    """load_settings + the estimator's own check of the values: an InputError on one line (naming
-    the file where the file is at fault: unknown names, invalid YAML), or settings accepted."""
+    """load_settings: an InputError on one line naming the file (unknown names, invalid YAML, a
+    bad value), or settings the estimator accepts."""
     def reader(p):
         settings = load_settings(p, "train", MultimodalGP)
-        try:
-            MultimodalGP(**settings)._validate()
-        except InputError as err:  # a value: named by its setting ("setting 'x': expected ...")
-            assert "\n" not in str(err) and err.message.startswith("setting '"), str(err)
-            event("value refused")
+        MultimodalGP(**settings)._validate()
         return settings
 
     assert_clean(reader, path)

@@ -77,6 +77,7 @@ MODEL_DAMAGES = {
     "joint names not a list": (lambda d: _edit_json(d / "model.json", joint_names="q"), "joint_names"),
     "unknown setting": (lambda d: _edit_json(d / "model.json", settings={"colour": 1}), "settings"),
     "bad setting value": (lambda d: _edit_json(d / "model.json", settings={"max_sweeps": "many"}), "max_sweeps"),
+    "setting beyond int64": (lambda d: _edit_json(d / "model.json", settings={"push_s": -2 ** 63 - 1}), "push_s"),
     "array missing": (lambda d: _edit_npz(d / "model.npz", drop="Y_0"), "Y_0"),
     "array of another shape": (lambda d: _edit_npz(d / "model.npz", X_0=np.zeros((3, 2))), "X_0"),
     "array not finite": (lambda d: _edit_npz(d / "model.npz", noise_var_0=np.array([np.nan])), "noise_var_0"),
@@ -163,8 +164,79 @@ def test_truncated_compensator_file(base, tmp_path, suffix):
     cut = tmp_path / f"cut{suffix}"
     cut.write_bytes(full.read_bytes()[: len(full.read_bytes()) // 2])
     one_error_line(run("check-passivity", cut), names=cut)
-    with pytest.raises(ValueError, match=str(cut)):
+    with pytest.raises(InputError, match="not a readable mmgp-compensator file") as info:
         load_compensator(cut)
+    assert info.value.file == str(cut)
+
+
+def _not_a_compensator(base, path: Path) -> None:
+    if path.suffix == ".npz":
+        shutil.copy(base / "model" / "model.npz", path)  # an NPZ archive, but a saved model's
+    else:
+        path.write_text("t,q_0,tau_0\n0,1,2\n")
+
+
+@pytest.mark.parametrize("suffix", [".json", ".npz", ".yaml"])
+def test_file_that_is_not_a_compensator_at_all(base, tmp_path, suffix):
+    path = tmp_path / f"other{suffix}"
+    _not_a_compensator(base, path)
+    before = path.read_bytes()
+    with pytest.raises(InputError) as info:
+        load_compensator(path)
+    assert info.value.file == str(path) and "mmgp-compensator" in info.value.message
+    assert isinstance(info.value, ValueError)  # callers catching ValueError still catch it
+    one_error_line(run("check-passivity", path), names=path)
+    assert path.read_bytes() == before
+
+
+def test_compensator_with_another_storage_offset(base, tmp_path):
+    d = json.loads((base / "comp.json").read_text())
+    true_offset = d["storage_offset"]
+    d["storage_offset"] = true_offset + 1.0
+    path = tmp_path / "offset.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError) as info:
+        load_compensator(path)
+    assert info.value.file == str(path)
+    assert "'storage_offset'" in info.value.message and repr(true_offset) in info.value.message
+    line = one_error_line(run("check-passivity", path), names=path)
+    assert "storage_offset" in line
+
+
+def test_compensator_that_cannot_be_rebuilt_is_an_input_error(base, tmp_path):
+    d = json.loads((base / "comp.json").read_text())
+    d["kernel"] = {"smoothness": "three"}
+    path = tmp_path / "kernel.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError, match="cannot rebuild the compensator") as info:
+        load_compensator(path)
+    assert info.value.file == str(path)
+
+
+def _damage_npy_header(src: Path, dst: Path) -> Path:
+    """``src`` (an NPZ) with the first array's .npy header made unbalanced: NumPy's header parser
+    (Python's tokenizer) raised TokenError, which no reader caught (found by the random fuzz)."""
+    import zipfile
+
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for i, info in enumerate(zin.infolist()):
+            data = zin.read(info)
+            zout.writestr(info, data.replace(b"{'descr'", b"(('descr'", 1) if i == 0 else data)
+    return dst
+
+
+def test_npy_header_the_tokenizer_fails_on(base, tmp_path):
+    export = tmp_path / "full.npz"
+    assert run("export", base / "model", "--out", export).exit_code == 0
+    comp = _damage_npy_header(export, tmp_path / "comp.npz")
+    with pytest.raises(InputError, match="not a readable mmgp-compensator file") as info:
+        load_compensator(comp)
+    assert info.value.file == str(comp)
+    model = damaged_copy(base / "model", tmp_path / "model", lambda d: (d / "model.npz").unlink())
+    _damage_npy_header(base / "model" / "model.npz", model / "model.npz")
+    with pytest.raises(InputError, match="model.npz is damaged") as info:
+        MultimodalGP.load(model)
+    assert info.value.file == str(model / "model.npz")
 
 
 def test_valid_compensator_passes_check(base):
@@ -272,6 +344,85 @@ def test_malformed_urdf_and_invalid_yaml_are_one_line(tmp_path):
     assert len(lines) == 1 and str(urdf) in lines[0] and "Line number=4" in lines[0], proc.stderr
     line = one_error_line(run("train", LOG, "--config", yml, "--out", tmp_path / "o", "--quiet"), names=yml)
     assert "not valid YAML" in line
+
+
+BAD_SETTING_VALUES = {
+    "negative count": ("train", "train:\n  max_sweeps: -3\n", "max_sweeps"),
+    "text for a number": ("train", "train:\n  push_s: soon\n", "push_s"),
+    "unknown choice": ("diagnose", "diagnose:\n  separate: sideways\n", "separate"),
+    "export count of zero": ("export", "export:\n  max_support: 0\n", "max_support"),
+    "export count as text": ("export", "export:\n  max_support: many\n", "max_support"),
+    "export negative seed": ("export", "export:\n  seed: -1\n", "seed"),
+    "integer beyond int64": ("train", "train:\n  stay_prob: -9223372036854775809\n", "stay_prob"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_SETTING_VALUES))
+def test_bad_setting_value_names_the_settings_file(base, tmp_path, case):
+    command, text, key = BAD_SETTING_VALUES[case]
+    yml = tmp_path / "settings.yaml"
+    yml.write_text(text)
+    first = {"train": [LOG], "diagnose": [LOG, "--urdf", URDF], "export": [base / "model"]}[command]
+    out = tmp_path / ("comp.json" if command == "export" else "out")
+    res = run(command, *first, "--config", yml, "--out", out, *(["--quiet"] if command != "export" else []))
+    line = one_error_line(res, names=yml)
+    assert f"setting '{key}'" in line
+    assert not out.exists() and yml.read_text() == text
+
+
+def test_bad_flag_value_is_not_blamed_on_the_settings_file(tmp_path):
+    from mmgp.config import load_settings
+
+    yml = tmp_path / "settings.yaml"
+    yml.write_text("train:\n  max_sweeps: -3\n  seed: 2\n")
+    # the flag replaces the file's bad value: accepted
+    assert load_settings(yml, "train", MultimodalGP, max_sweeps=4) == {"max_sweeps": 4, "seed": 2}
+    yml.write_text("train:\n  seed: 2\n")
+    with pytest.raises(InputError, match="setting 'max_sweeps'") as info:
+        load_settings(yml, "train", MultimodalGP, max_sweeps=0)
+    assert info.value.file is None
+
+
+ROBOT_DAMAGES = {
+    "unknown robot": ({"robot": "no_such_robot", "urdf": None, "joint_names": ["j0"]}, "no_such_robot"),
+    "missing URDF": ({"robot": None, "urdf": "/nonexistent/arm.urdf", "joint_names": ["j0"]}, "arm.urdf"),
+    "robot not a name": ({"robot": 7, "urdf": None}, "'robot'"),
+}
+
+
+@pytest.mark.parametrize("damage", list(ROBOT_DAMAGES))
+def test_saved_model_naming_a_robot_that_cannot_be_loaded(base, tmp_path, damage):
+    spec, expected = ROBOT_DAMAGES[damage]
+    model = damaged_copy(base / "model", tmp_path / "model", lambda d: _edit_json(d / "model.json", robot=spec))
+    meta_path = model / "model.json"
+    before = meta_path.read_bytes()
+    with pytest.raises(InputError) as info:
+        MultimodalGP.load(model)
+    assert info.value.file == str(meta_path) and expected in info.value.message
+    res = run("predict", model, LOG, "--out", tmp_path / "p.parquet")
+    assert expected in one_error_line(res, names=meta_path)
+    assert meta_path.read_bytes() == before and not (tmp_path / "p.parquet").exists()
+
+
+@pytest.mark.parametrize("device", ["mps", "meta"])
+def test_device_torch_knows_but_the_gps_do_not_run_on(tmp_path, device):
+    res = run("compare", LOG, "--urdf", URDF, "--out", tmp_path / "out", "--quiet", "--device", device)
+    assert f"device '{device}' is not supported" in one_error_line(res)
+    assert not (tmp_path / "out").exists()
+
+
+def test_compare_with_too_few_training_samples_is_a_usage_error(tmp_path):
+    res = run("compare", LOG, "--urdf", URDF, "--out", tmp_path / "out", "--quiet", "--max-train", "0")
+    assert res.exit_code == 2 and isinstance(res.exception, SystemExit) and "--max-train" in res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_compare_on_a_log_too_short_for_its_folds(tmp_path):
+    short = tmp_path / "short.csv"
+    pd.read_parquet(LOG).iloc[:10].to_csv(short, index=False)
+    res = run("compare", short, "--urdf", URDF, "--out", tmp_path / "out", "--quiet")
+    assert "too short to compare" in one_error_line(res, names=short)
+    assert not (tmp_path / "out").exists()
 
 
 def test_quiet_train_prints_nothing_before_its_error(tmp_path):

@@ -48,7 +48,7 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
             out: Path = out_dir_option(),
             robot: Optional[str] = robot_option(),
             urdf: Optional[Path] = urdf_option(),
-            max_train: int = typer.Option(1000, "--max-train", help="Training samples per fold."),
+            max_train: int = typer.Option(1000, "--max-train", min=2, help="Training samples per fold."),
             device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
             force: bool = force_option(),
             quiet: bool = quiet_option()):

@@ -54,6 +54,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..errors import InputError, describe
 from .erf import erf
 from .kernels import WendlandProfile
 from .passivity import potential_bounds
@@ -346,23 +347,21 @@ def _read(path: Path) -> dict:
                 d[k] = z[k]
             return d
     except READ_ERRORS as exc:
-        raise ValueError(f"file {path}: not a readable {FORMAT} file ({exc})") from exc
+        raise InputError(f"not a readable {FORMAT} file: expected the JSON text or NPZ archive 'mmgp export' "
+                         f"writes ({describe(exc)})", file=path) from None
 
 
 def load_compensator(path) -> Compensator:
     """Load a compensator file written by :meth:`Compensator.save` (numpy only, no torch).
 
-    Refuses (ValueError naming the file) a file of another format or version, one whose prior is
+    Every refusal is one :class:`~mmgp.errors.InputError` (a ValueError) naming the file and what
+    was expected: a file that cannot be read (truncated, neither JSON nor NPZ), one of another
+    format or version or with a bad key (:func:`validate_compensator_dict`), one whose prior is
     physically inconsistent (negative mass, non-rotation placements, ...), and one whose stored
     storage offset does not match the offset recomputed from its contents (edited or corrupt)."""
     path = Path(path)
     d = _read(path)
     validate_compensator_dict(d, path)
-    if d.get("format") != FORMAT:
-        raise ValueError(f"file {path}: format is {d.get('format')!r}, expected {FORMAT!r}")
-    if int(d.get("version", -1)) not in READABLE_VERSIONS:
-        raise ValueError(f"file {path}: {FORMAT} version {d.get('version')} is not supported "
-                         f"(this mmgp reads versions {READABLE_VERSIONS})")
     try:
         prior = RigidBodyPrior.from_dict(d["prior"]) if d.get("prior") else None
         kernel = d.get("kernel") if isinstance(d.get("kernel"), dict) else {}
@@ -372,11 +371,12 @@ def load_compensator(path) -> Compensator:
                            smoothness=int(kernel.get("smoothness", 3)),
                            deviation_sampled_max=d.get("deviation_sampled_max"))
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"file {path}: {exc}") from exc
+        raise InputError(f"cannot rebuild the compensator ({exc}): expected a field 'mmgp export' wrote",
+                         file=path) from None
     # The bounds are recomputed from the weights and the prior, never trusted from the file; a
     # mismatch means the file was edited or corrupted.
     if not np.isclose(comp.storage_offset, float(d["storage_offset"]), rtol=1e-9,
                       atol=1e-12 * comp.bound_info["triangle_bound"]):
-        raise ValueError(f"file {path}: storage_offset {d['storage_offset']} does not match the weights "
-                         f"and prior ({comp.storage_offset}); corrupt file")
+        raise InputError(f"'storage_offset' is {d['storage_offset']!r}, expected {comp.storage_offset!r} (the "
+                         "offset recomputed from the weights and prior): the file was edited or corrupted", file=path)
     return comp

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+import tokenize
 import zipfile
 import zlib
 
@@ -23,7 +24,9 @@ import numpy as np
 
 from ..errors import InputError
 
-READ_ERRORS = (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, RecursionError)
+# SyntaxError / TokenError: NumPy parses an .npy header with Python's tokenizer, and a damaged one fails there
+READ_ERRORS = (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, RecursionError,
+               SyntaxError, tokenize.TokenError)
 
 # A joint position (rad, or m for a prismatic joint) or a lengthscale outside these is no robot's:
 # the evaluator's exp(-u^2/2) and the checks' finite differences lose every digit long before.

@@ -48,7 +48,8 @@ def open_bag(path: Path) -> Iterator[Any]:
         # definitions stored in the bag win; the default store only serves bags without any
         reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
         reader.open()
-    except (AnyReaderError, FileNotFoundError, OSError, ValueError, KeyError) as exc:
+    # rosbags reads a damaged metadata.yaml or storage file with TypeError/AttributeError too
+    except (AnyReaderError, OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         kind = "ROS 1 bag" if path.suffix.lower() == ".bag" else "ROS 2 bag"
         raise InputError(f"cannot read as a {kind} ({type(exc).__name__}: {exc})", file=path) from None
     try:
@@ -59,7 +60,11 @@ def open_bag(path: Path) -> Iterator[Any]:
 
 def choose_topic(reader: Any, topic: str | None, path: Path) -> tuple[str, str, list]:
     """(topic, message type, connections) of the topic to convert."""
-    topics = {name: info for name, info in reader.topics.items()}
+    try:
+        topics = {name: info for name, info in reader.topics.items()}
+        connections = list(reader.connections)
+    except Exception as exc:  # rosbags lists them from the metadata: a damaged one fails here, any type
+        raise InputError(f"cannot list the bag's topics ({type(exc).__name__}: {exc})", file=path) from None
     usable = {name: info.msgtype for name, info in topics.items() if info.msgtype in SUPPORTED}
     if topic is not None:
         if topic not in topics:
@@ -73,7 +78,7 @@ def choose_topic(reader: Any, topic: str | None, path: Path) -> tuple[str, str, 
         listing = ", ".join(f"{k} ({v})" for k, v in sorted(usable.items())) or "none"
         raise InputError(f"{len(usable)} topics with joint states ({listing}); expected exactly one, "
                          "or name one with --topic", file=path)
-    conns = [c for c in reader.connections if c.topic == topic]
+    conns = [c for c in connections if c.topic == topic]
     return topic, usable[topic], conns
 
 

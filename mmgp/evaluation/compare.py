@@ -36,6 +36,7 @@ from ..gp.linalg import resolve_device
 from ..gp.hyper import default_hyper, optimise_hyper
 from ..gp.objectives import leave_block_out
 from ..data.logs import RobotLog
+from ..errors import InputError
 from ..data.outputs import atomic_write_bytes, jsonable
 from ..data.differentiation import SavitzkyGolay
 from ..data.folds import spread_subset, time_block_folds
@@ -154,8 +155,9 @@ def _fold_predictions(log: RobotLog, tau, tau_rbd, folds, *, gap, max_train, see
     t_fit = 0.0
     for k, (train, test) in enumerate(folds):
         if len(train) < 2:
-            raise ValueError(f"fold {k}: only {len(train)} training samples left with gap={gap}; "
-                             "use fewer folds or a smaller gap")
+            raise InputError(f"the log is too short to compare: fold {k} keeps only {len(train)} training "
+                             f"samples with gap={gap}; use fewer folds, a smaller gap or a longer log",
+                             file=None if log.path == "<arrays>" else log.path)
         sub = spread_subset(train, max_train, rng)
         fold_info.append({"test": [int(test[0]), int(test[-1]) + 1], "n_train_available": int(len(train)),
                           "n_train": int(len(sub))})

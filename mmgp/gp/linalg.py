@@ -42,14 +42,19 @@ def default_device(device: str | torch.device | None) -> Iterator[None]:
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
     """The torch device of a setting: None is the block's default (:func:`default_device`, "cpu"
-    outside one); "auto" is CUDA when available. Raises ValueError for CUDA without a GPU."""
+    outside one); "auto" is CUDA when available. Raises ValueError for another device type (mps,
+    xpu, ...), for CUDA without a GPU and for a CUDA index beyond the GPUs there are."""
     if device is None:
         device = _DEFAULT_DEVICE.get()
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     dev = torch.device(device)
+    if dev.type not in ("cpu", "cuda"):  # torch names more (mps, xpu, meta, ...); the GPs run on these two
+        raise ValueError(f"device {device!r} is not supported: expected cpu, cuda, cuda:N or auto")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device {device!r} requested but no CUDA device is available")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device {device!r} requested but there are {torch.cuda.device_count()} CUDA device(s)")
     return dev
 
 

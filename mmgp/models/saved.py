@@ -3,11 +3,12 @@
 Every way a saved model can be damaged (a truncated or missing file, text that is not JSON, a key
 of the wrong type, an array missing, of another shape or not finite) ends in one
 :class:`~mmgp.errors.InputError` naming the file and what was expected, before any GP is built
-from it. :class:`mmgp.MultimodalGP.load` uses both readers.
+from it. :class:`mmgp.MultimodalGP.load` uses these readers.
 """
 from __future__ import annotations
 
 import json
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -16,7 +17,9 @@ import numpy as np
 
 from ..errors import InputError, describe
 
-_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+# SyntaxError / TokenError: NumPy parses an .npy header with Python's tokenizer, and a damaged one fails there
+_NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, SyntaxError,
+               tokenize.TokenError)
 
 
 def _v1_settings(meta: dict, path: Path) -> dict:
@@ -67,14 +70,22 @@ def _check_meta(meta: dict, path: Path) -> None:
         raise bad("joint_names", "a non-empty list of joint names")
     if not isinstance(meta.get("settings"), dict):
         raise bad("settings", "an object of training settings")
-    if meta.get("robot") is not None and not isinstance(meta["robot"], dict):
-        raise bad("robot", "an object naming the robot, or null")
+    if meta.get("robot") is not None and not _robot_spec_ok(meta["robot"]):
+        raise bad("robot", "an object with 'robot' (a name) or 'urdf' (a path) and 'joint_names' (names), or null")
     kinds = meta.get("gp_kinds")
     if kinds is not None and (not isinstance(kinds, list) or len(kinds) != K
                               or not all(k in ("exact", "sgpr", "subset") for k in kinds)):
         raise bad("gp_kinds", f"a list of {K} of 'exact', 'sgpr', 'subset'")
     if meta.get("mean_basis") not in (None, "payload", "rbd"):
         raise bad("mean_basis", "'payload', 'rbd' or null")
+
+
+def _robot_spec_ok(spec) -> bool:
+    if not isinstance(spec, dict):
+        return False
+    robot, urdf, names = spec.get("robot"), spec.get("urdf"), spec.get("joint_names")
+    text = (robot is None or isinstance(robot, str)) and (urdf is None or isinstance(urdf, str))
+    return text and (names is None or isinstance(names, list) and all(isinstance(s, str) for s in names))
 
 
 def _finite(arrays: dict, key: str, path: Path, shape: tuple) -> np.ndarray:
@@ -131,3 +142,17 @@ def read_model_arrays(model_dir: Path, meta: dict) -> dict:
         if np.any(out["friction_scale"] <= 0):
             raise InputError("array 'friction_scale' must be positive", file=path)
     return out
+
+
+def read_model_robot(spec: dict | None, meta_path: Path):
+    """The RobotModel a saved model names in ``model.json`` (``spec``: its checked "robot" entry),
+    or None; one that cannot be loaded here (an unknown name, a missing URDF) is refused naming
+    ``meta_path``."""
+    if not spec:
+        return None
+    from ..physics.robot import load_robot
+
+    try:
+        return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
+    except InputError as exc:
+        raise InputError(f"'robot' (the rigid-body model it was trained with): {exc}", file=meta_path) from None
