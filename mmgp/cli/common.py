@@ -6,7 +6,7 @@ import contextlib
 import signal
 import threading
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator, List, Optional
 
 import typer
 
@@ -103,6 +103,14 @@ def parameter_default(func, name: str):
 
 def out_dir_option() -> Path:
     return typer.Option(..., "--out", help="Output folder (created; refused if non-empty).")
+
+
+def logs_argument(help: str = "One or more logs (Parquet or CSV).") -> List[Path]:
+    return typer.Argument(..., help=help)
+
+
+def config_option(section: str, more: str = "") -> Optional[Path]:
+    return typer.Option(None, "--config", help=f"YAML settings file, section '{section}'{more}.")
 
 
 def force_option(what: str = "--out") -> bool:

@@ -8,7 +8,7 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, _given, _robot_for, app, command_numerics,
-                     force_option, out_dir_option, parameter_default, quiet_option, robot_option, urdf_option)
+                     config_option, force_option, out_dir_option, parameter_default, quiet_option, robot_option, urdf_option)
 
 
 @app.command()
@@ -16,8 +16,7 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
              out: Path = out_dir_option(),
              robot: Optional[str] = robot_option(),
              urdf: Optional[Path] = urdf_option(),
-             config: Optional[Path] = typer.Option(None, "--config", help="YAML settings file; its section "
-                                                   "'diagnose:' holds Diagnoser settings."),
+             config: Optional[Path] = config_option("diagnose", " (Diagnoser settings)"),
              device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
              force: bool = force_option(),
              quiet: bool = quiet_option()):

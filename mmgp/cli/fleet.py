@@ -7,7 +7,8 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import ProgressDisplay, _fail, _given, app, force_option, out_dir_option, quiet_option
+from .common import (ProgressDisplay, _fail, _given, app, force_option, logs_argument, out_dir_option, quiet_option,
+                     robot_option, urdf_option)
 
 
 def _progress(shown: ProgressDisplay):
@@ -37,14 +38,14 @@ def _report(fleet, out: Path) -> str:
 
 
 @app.command()
-def fleet(logs: List[Path] = typer.Argument(..., help="Log files, or folders of logs (*.parquet, *.pq, *.csv)."),
+def fleet(logs: List[Path] = logs_argument("Log files, or folders of logs (*.parquet, *.pq, *.csv)."),
           out: Path = out_dir_option(),
           address: Optional[str] = typer.Option(None, "--address",
                                                 help="Ray cluster address (e.g. auto, ray://host:10001); "
                                                      "default: a local Ray on this machine."),
           train: bool = typer.Option(False, "--train", help="Also train a model on each log."),
-          robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name for every log."),
-          urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot, for every log."),
+          robot: Optional[str] = robot_option(),
+          urdf: Optional[Path] = urdf_option(),
           workers: Optional[int] = typer.Option(None, "--workers",
                                                 help="Tasks at once (default: the cores available)."),
           baseline: int = typer.Option(5, "--baseline", help="First logs per robot that define the drift baseline."),

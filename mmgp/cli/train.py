@@ -13,7 +13,8 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, command_numerics,
-                     force_option, out_dir_option, quiet_option, seed_option, sweep_limit)
+                     config_option, force_option, logs_argument, out_dir_option, quiet_option, seed_option,
+                     sweep_limit)
 
 
 def _modes(value: Optional[str]):
@@ -69,11 +70,10 @@ def _shortened(rep: dict) -> str:
 
 
 @app.command()
-def train(logs: List[Path] = typer.Argument(..., help="One or more logs (Parquet or CSV)."),
+def train(logs: List[Path] = logs_argument(),
           out: Path = out_dir_option(),
-          config: Optional[Path] = typer.Option(None, "--config",
-                                                help="YAML settings, section 'train' ('mmgp config show default' "
-                                                     "prints every setting at its default)."),
+          config: Optional[Path] = config_option("train", " ('mmgp config show default' prints every setting "
+                                                          "at its default)"),
           modes: Optional[str] = typer.Option(None, "--modes", help="Number of dynamic modes, or 'auto'."),
           disturbance: Optional[bool] = typer.Option(None, "--disturbance/--no-disturbance",
                                                      help="Disturbance mode (default on)."),

@@ -81,15 +81,7 @@ class Fleet(BaseEstimator):
     def __init__(self, robot: str | None = None, urdf: str | Path | None = None, train: bool = False,
                  engine: str = "ray", address: str | None = None, workers: int | None = None,
                  baseline: int = 5, diagnosis_settings: dict | None = None, train_settings: dict | None = None):
-        self.robot = robot
-        self.urdf = urdf
-        self.train = train
-        self.engine = engine
-        self.address = address
-        self.workers = workers
-        self.baseline = baseline
-        self.diagnosis_settings = diagnosis_settings
-        self.train_settings = train_settings
+        vars(self).update({k: v for k, v in locals().items() if k != "self"})  # stored unchanged
 
     def _check(self) -> None:
         if self.robot is not None and self.urdf is not None:

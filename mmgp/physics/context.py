@@ -105,14 +105,11 @@ class Context:
     pi0: np.ndarray | None = None
     base: object | None = None
     distal: tuple = ()
+    T: int = field(init=False)      # samples, from q
+    n: int = field(init=False)      # joints, from q
 
-    @property
-    def n(self) -> int:
-        return self.q.shape[1]
-
-    @property
-    def T(self) -> int:
-        return self.q.shape[0]
+    def __post_init__(self):
+        self.T, self.n = np.shape(self.q)
 
     @property
     def load(self) -> np.ndarray:

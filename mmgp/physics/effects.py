@@ -82,8 +82,13 @@ class Effect:
     switchable: ClassVar[bool] = False
     sensor: ClassVar[bool] = False
 
-    def __init_subclass__(cls, **kw):
-        super().__init_subclass__(**kw)
+    def __init_subclass__(cls, **declared):
+        # a one-column effect is declared in its class statement: name=, label=, units=, kind=
+        for key, value in declared.items():
+            if not hasattr(cls, key):
+                raise TypeError(f"{cls.__name__}: unknown effect attribute {key!r}")
+            setattr(cls, key, value)
+        super().__init_subclass__()
         if cls.name:
             EFFECT_CLASSES[cls.name] = cls
 
@@ -196,25 +201,17 @@ class _JointColumnEffect(Effect):
         return getattr(ctx, self.kind)[:, self.index]
 
 
-class CoulombFriction(_JointColumnEffect):
+class CoulombFriction(_JointColumnEffect, name="coulomb_friction", label="Coulomb friction",
+                      units={"tau_c": "N*m"}, kind="sign"):
     """tau_c * tanh(dq / v_s): dry friction opposing motion (tau_c >= 0, N*m)."""
-
-    name = "coulomb_friction"
-    label = "Coulomb friction"
-    units = {"tau_c": "N*m"}
-    kind = "sign"
 
     def values(self, ctx):
         return _smooth_sign(ctx, self.index)
 
 
-class ViscousFriction(_JointColumnEffect):
+class ViscousFriction(_JointColumnEffect, name="viscous_friction", label="viscous friction",
+                      units={"b": "N*m*s/rad"}, kind="dq"):
     """b * dq (b >= 0, N*m*s/rad)."""
-
-    name = "viscous_friction"
-    label = "viscous friction"
-    units = {"b": "N*m*s/rad"}
-    kind = "dq"
 
 
 class LoadDependentFriction(Effect):
@@ -243,13 +240,9 @@ class LoadDependentFriction(Effect):
         return self.atoms()
 
 
-class Armature(_JointColumnEffect):
+class Armature(_JointColumnEffect, name="armature", label="armature (rotor inertia)",
+               units={"inertia": "kg*m^2"}, kind="ddq"):
     """inertia * ddq: reflected rotor inertia (kg*m^2 >= 0)."""
-
-    name = "armature"
-    label = "armature (rotor inertia)"
-    units = {"inertia": "kg*m^2"}
-    kind = "ddq"
 
 
 class JointSpring(Effect):
@@ -306,15 +299,9 @@ class EncoderOffset(Effect):
         return [int(i) for i in np.flatnonzero(col > 1e-9 * max(col.max(), 1e-300))]
 
 
-class TorqueOffset(_JointColumnEffect):
+class TorqueOffset(_JointColumnEffect, name="torque_offset", label="a torque-sensor offset",
+                   units={"offset": "N*m"}, kind="one", nonnegative=False, sensor=True):
     """Constant bias of the logged torque: logged tau = true tau + offset (N*m)."""
-
-    name = "torque_offset"
-    label = "a torque-sensor offset"
-    units = {"offset": "N*m"}
-    kind = "one"
-    nonnegative = False
-    sensor = True
 
     def values(self, ctx):
         return np.ones(ctx.T)
