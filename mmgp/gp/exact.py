@@ -57,7 +57,7 @@ class StandardisedRBFGP(BaseEstimator):
 
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
-                 coarse_fit_points: int = 300, independent_outputs: bool = False):
+                 coarse_fit_points: int = 300, independent_outputs: bool = False, refine_rounds: int = 1):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -67,6 +67,7 @@ class StandardisedRBFGP(BaseEstimator):
         self.seed = seed
         self.coarse_fit_points = coarse_fit_points
         self.independent_outputs = independent_outputs
+        self.refine_rounds = refine_rounds
 
     def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
@@ -130,6 +131,9 @@ class ExactGP(StandardisedRBFGP):
     noise_floor : smallest noise variance, as a fraction of each output's variance.
     independent_outputs : one optimiser run per output (see
         :func:`mmgp.gp.hyper.optimise_hyper`); default False, one run over all outputs.
+    refine_rounds : after a coarse climb, up to this many refinement runs of ``max_iter // 3``
+        iterations on the fitting subset, another only while the last one still gained (see
+        :func:`mmgp.gp.hyper.optimise_hyper`'s ``rounds``); default 1.
     device : torch device ("cpu", "cuda", "auto"); None (default): the block's default
         (:func:`mmgp.gp.linalg.default_device`), "cpu" outside one.
 

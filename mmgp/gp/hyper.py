@@ -215,7 +215,7 @@ def rbf_value_and_grad(params: RBFParams, objective: Objective, X: torch.Tensor,
 
 def optimise_hyper(X: torch.Tensor, Y: torch.Tensor, init: Hyper, *, objective: str | Objective = "loo",
                    ard: bool = True, max_iter: int = 60, noise_floor: float = 1e-6,
-                   independent: bool = False) -> tuple[Hyper, float]:
+                   independent: bool = False, rounds: int = 1, climb_tol: float = 0.01) -> tuple[Hyper, float]:
     """Hyperparameters of the batched RBF GP maximising ``objective`` (plus the weak priors).
 
     X (N, d) and Y (N, m) standardised tensors; ``objective`` "loo" (leave-one-out log predictive),
@@ -228,18 +228,32 @@ def optimise_hyper(X: torch.Tensor, Y: torch.Tensor, init: Hyper, *, objective: 
     so an output whose climb is slow can stop far from its optimum: on the real Barrett WAM
     (2,000 rows, 7 joints) the joint run left joint 7 at a per-sample LOO of -1.43 (test nMSE
     ~1.0), separate runs reached -0.13 (nMSE 0.10) and improved every other joint, in less time.
+
+    ``rounds``: up to this many runs of ``max_iter`` iterations, each from the last one's optimum,
+    another only while the last gained more than ``climb_tol`` per sample (a climb cut short far
+    from its optimum). On the real SARCOS (joint 6, 2,000 rows, after the 300-row coarse climb) one
+    run of 16 iterations stopped at a per-sample LOO of -1.30 with noise 0.34 of the variance
+    (test nMSE 0.066 on all rows), 50 iterations reached +0.82 with noise 0.002.
     """
     if independent and Y.shape[1] > 1:
         parts = [optimise_hyper(X, Y[:, j:j + 1], init.output(j), objective=objective, ard=ard, max_iter=max_iter,
-                                noise_floor=noise_floor) for j in range(Y.shape[1])]
+                                noise_floor=noise_floor, rounds=rounds, climb_tol=climb_tol)
+                 for j in range(Y.shape[1])]
         return Hyper.stack([h for h, _ in parts]), float(sum(v for _, v in parts))
     obj = get_objective(objective)
     params = RBFParams(Y.shape[1], X.shape[1], ard=ard, noise_floor=noise_floor)
-    best = maximise(partial(rbf_value_and_grad, params, obj, X, Y.T.contiguous()), params.pack(init),
-                    n=X.shape[0], bounds=params.bounds, priors=params.priors, max_iter=max_iter,
-                    rows=X.shape[0], device=X.device)
+    climb = partial(maximise, partial(rbf_value_and_grad, params, obj, X, Y.T.contiguous()), n=X.shape[0],
+                    bounds=params.bounds, priors=params.priors, max_iter=max_iter, rows=X.shape[0], device=X.device)
+    best = climb(params.pack(init))
     if best is None:
         return init, float("nan")
+    for _ in range(rounds - 1):
+        more = climb(best.theta)
+        gain = -math.inf if more is None else more.value - best.value
+        if gain > 0:
+            best = more
+        if not gain > climb_tol:
+            break
     return params.to_hyper(best.theta), best.value
 
 
@@ -258,12 +272,12 @@ def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: 
     opts = dict(objective=est.objective, ard=est.ard, noise_floor=est.noise_floor,
                 independent=bool(getattr(est, "independent_outputs", False)))
     n_c = int(est.coarse_fit_points or 0)
-    max_iter = est.max_iter
+    max_iter, rounds = est.max_iter, 1
     if not warm and n_c > 0 and len(idx) > 2 * n_c:
         coarse = np.sort(rng.choice(idx, n_c, replace=False))
         init, _ = optimise_hyper(Xs[coarse], Ys[coarse], init, max_iter=est.max_iter, **opts)
-        max_iter = max(10, est.max_iter // 3)
-    return optimise_hyper(Xs[idx], Ys[idx], init, max_iter=max_iter, **opts)
+        max_iter, rounds = max(10, est.max_iter // 3), int(getattr(est, "refine_rounds", 1))
+    return optimise_hyper(Xs[idx], Ys[idx], init, max_iter=max_iter, rounds=rounds, **opts)
 
 
 def default_hyper(d: int, m: int, noise: float = 0.1) -> Hyper:

@@ -92,10 +92,10 @@ class SparseGP(StandardisedRBFGP):
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
                  coarse_fit_points: int = 300, independent_outputs: bool = False, n_inducing: int = 1000,
-                 method: str = "sgpr", n_subset: int = 3000):
+                 method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = 1):
         super().__init__(ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
                          noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points,
-                         independent_outputs=independent_outputs)
+                         independent_outputs=independent_outputs, refine_rounds=refine_rounds)
         self.method = method
         self.n_subset = n_subset
         self.n_inducing = n_inducing
