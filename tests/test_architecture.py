@@ -124,3 +124,43 @@ def test_function_length_counts_code_not_docstring(tmp_path, snippet, expected):
     f = tmp_path / "m.py"
     f.write_text(snippet)
     assert [n for _, _, n in _function_lengths(f)] == [expected]
+
+
+def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), i.e. import circles."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in list(edges):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_two_modules_import_each_other():
+    # Package faces (__init__) only hand names on; circles are looked for between modules.
+    faces = {m for m, p in _modules() if p.name == "__init__.py"}
+    edges = {m: {t for t in (_existing(x) for _, x in _imports(m, p)) if t != m and t not in faces}
+             for m, p in _modules() if m not in faces}
+    assert not _cycles(edges), f"import circles: {_cycles(edges)}"
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]

@@ -59,12 +59,8 @@ from .erf import erf
 from .kernels import WendlandProfile
 from .passivity import potential_bounds
 from .prior import RigidBodyPrior
-from .validate import READ_ERRORS, validate_compensator_dict
+from .validate import FORMAT, KINDS, READ_ERRORS, VERSION, validate_compensator_dict
 
-FORMAT = "mmgp-compensator"
-VERSION = 2
-READABLE_VERSIONS = (1, 2)
-KINDS = ("curl-free-wendland", "curl-free-rbf", "erf-1dof")
 _SQRT_PI_2 = math.sqrt(math.pi / 2.0)
 _ARRAYS = ("support", "weights", "lengthscales", "workspace_bounds")
 

@@ -24,6 +24,12 @@ import numpy as np
 
 from ..errors import InputError
 
+#: the file format this package writes and reads (its name, version, the versions it reads, field kinds)
+FORMAT = "mmgp-compensator"
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
+KINDS = ("curl-free-wendland", "curl-free-rbf", "erf-1dof")
+
 # SyntaxError / TokenError: NumPy parses an .npy header with Python's tokenizer, and a damaged one fails there
 READ_ERRORS = (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, RecursionError,
                SyntaxError, tokenize.TokenError)
@@ -78,10 +84,7 @@ def _dims(shape: tuple) -> str:
 
 
 def _header(d, file) -> None:
-    from . import field
-
-    FORMAT, KINDS = field.FORMAT, field.KINDS
-    versions = tuple(getattr(field, "READABLE_VERSIONS", (field.VERSION,)))
+    versions = READABLE_VERSIONS
     if not isinstance(d, dict):
         raise _fail(file, f"expected a JSON object with \"format\": \"{FORMAT}\", found a {type(d).__name__}")
     if d.get("format") != FORMAT:
@@ -154,7 +157,7 @@ def validate_compensator_dict(d, file: str | os.PathLike | None = None) -> None:
     (``kind``, ``support``, ``weights``, ``lengthscales``, ``signal_var``, ``storage_offset``), a
     value of the wrong type, shape or range (positions within +-1e6 rad or m, lengthscales in
     [1e-6, 1e6], everything finite; ``info`` and ``prior`` objects or null), or a claim that the
-    storage goes below 0. Versions: those ``field.READABLE_VERSIONS`` lists (else ``VERSION``).
+    storage goes below 0. Versions: those :data:`READABLE_VERSIONS` lists.
 
     ``d``: the parsed JSON object (arrays as nested lists) or the NPZ's ``meta`` with its arrays
     (``support`` (N, n), ``weights`` (N, n), ``lengthscales`` (n,), ``workspace_bounds`` (2, n)).
