@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy.special import logsumexp
 
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
@@ -43,6 +44,7 @@ class SweepParams:
     p_leave: float
     sigma_d: np.ndarray
     calib: np.ndarray
+    sigma_floor: np.ndarray | None = None
 
 
 @dataclass
@@ -203,13 +205,48 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         vars_.append(var)
         loglik[:, k] = _gauss_logpdf(Y, mean, var).sum(1)
         if disturbance:
-            ll_push = _gauss_logpdf(Y, mean, var + params.sigma_d)
-            if n > 1:
-                # A push on one link loads only some joints: per joint, a 50/50 mixture of
-                # "untouched" and "pushed", so unaffected joints cost at most log 2 each.
-                ll_push = np.logaddexp(_gauss_logpdf(Y, mean, var), ll_push) - np.log(2.0)
-            loglik[:, K + k] = ll_push.sum(1)
+            loglik[:, K + k] = push_loglik(_gauss_logpdf(Y, mean, var), _pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor))
     return Emissions(mus, vars_, loglik)
+
+
+import os
+_PM = os.environ.get("MMGP_PUSH_MODEL", "joint")
+_SM = os.environ.get("MMGP_PUSH_SCALE", "single")
+
+
+def _pushed_logpdf(Y, mean, var, sigma_d, floor=None):
+    if _SM == "single":
+        return _gauss_logpdf(Y, mean, var + sigma_d)
+    fs = [1.0] + [float(f) for f in _SM.split(",")]
+    parts = [_gauss_logpdf(Y, mean, var + (sigma_d * f if floor is None else np.maximum(sigma_d * f, floor))) for f in fs]
+    return logsumexp(np.stack(parts), 0) - np.log(len(fs))
+
+
+def push_loglik(lu, lp):
+    n = lu.shape[1]
+    if n == 1:
+        return lp[:, 0]
+    if _PM.startswith("joint"):
+        return (np.logaddexp(lu, lp) - np.log(2.0)).sum(1)
+    return logsumexp(chain_components(lu, lp), 1) - np.log(n)
+
+
+def chain_components(lu, lp):
+    head = np.cumsum(lp, 1)
+    tail = np.zeros_like(lu)
+    tail[:, :-1] = np.cumsum(lu[:, :0:-1], 1)[:, ::-1]
+    return head + tail
+
+
+def joint_pushed_prob(lu, lp):
+    n = lu.shape[1]
+    if n == 1:
+        return np.ones_like(lu)
+    if _PM.startswith("joint"):
+        return np.exp(lp - np.logaddexp(lu, lp))
+    comp = chain_components(lu, lp)
+    r = np.exp(comp - logsumexp(comp, 1, keepdims=True))
+    return np.cumsum(r[:, ::-1], 1)[:, ::-1]
 
 
 def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: SweepParams, *,
@@ -238,8 +275,13 @@ def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: 
         mu_s = np.stack(em.means)[mode_of, np.arange(T)]
         var_s = np.stack(em.vars)[mode_of, np.arange(T)]
         if dist.sum() >= 3:
-            excess = ((Y - mu_s) ** 2 - var_s)[dist].mean(0)
-            params.sigma_d = np.maximum(excess, prior.floor_z ** 2 * np.median(var_s, 0))
+            if _PM.endswith("_w"):
+                w = joint_pushed_prob(_gauss_logpdf(Y, mu_s, var_s), _pushed_logpdf(Y, mu_s, var_s, params.sigma_d, params.sigma_floor))[dist]
+                excess = (w * ((Y - mu_s) ** 2 - var_s)[dist]).sum(0) / np.maximum(w.sum(0), 1e-12)
+            else:
+                excess = ((Y - mu_s) ** 2 - var_s)[dist].mean(0)
+            params.sigma_floor = prior.floor_z ** 2 * np.median(var_s, 0)
+            params.sigma_d = np.maximum(excess, params.sigma_floor)
         trans = _transition_counts(states, K, starts)
         n0 = prior.n_pushes
         params.p_enter = (trans["enter"] + n0) / (trans["undisturbed"] + n0 * prior.gap_len)
