@@ -6,11 +6,15 @@ replaced by pushes of ``--force`` N (uniform in the range, random direction) on 
 ``--links`` (cycled, one link per push), ~20% of the time. ``mmgp`` (``MultimodalGP`` defaults)
 labels it; printed per log and per pushed link: unperturbed correct, perturbed missed (the
 contract's rule: significant samples must be flagged, clean ones not) and, with ``--zscores``,
-the median per-joint |z| of the last sweep's nominal predictive on missed vs found significant
-samples (where the evidence of a missed push sits).
+on missed / found significant / clean samples the medians of: per-joint |z| under the last
+sweep's nominal predictive (``z_``), the largest joint's |z| (``zmax_``), the true push torque
+in predictive standard deviations (``pushz_``) and the predictive std in N*m (``std_``): where
+the evidence of a missed push sits. ``--dump DIR`` keeps the last sweep's arrays per log (npz).
+``--controller ctc`` forces computed torque, ``--noise`` one torque noise std on every joint.
 
 Usage: python benchmarks/bench_push_links.py [--seeds 0,1] [--links 2,4,7] [--force 8,25]
-       [--rate 100] [--seconds 40] [--zscores] [--cache DIR] [--json FILE]
+       [--rate 100] [--seconds 40] [--controller ctc] [--noise 0.05] [--zscores] [--dump DIR]
+       [--cache DIR] [--json FILE]
 """
 from __future__ import annotations
 
@@ -93,7 +97,10 @@ def make_log(seed, links, force, rate, seconds, cache: Path, controller=None, no
     return log, z["labels"], z["tau_push"], z["link"]
 
 
-def run_one(log, labels, link, tau_push, zscores: bool) -> dict:
+def run_one(log, labels, link, tau_push, zscores: bool, dump: str | None = None) -> dict:
+    """Fit the default ``MultimodalGP`` on ``log`` and score its labels against ``labels`` (T,)
+    (1 significant, 0 clean, -1 ambiguous); ``link`` (T,) the pushed link (0 none), ``tau_push``
+    (T, n) the true push torque, N*m."""
     from mmgp.estimator import MultimodalGP
 
     t0 = time.perf_counter()
@@ -119,7 +126,6 @@ def run_one(log, labels, link, tau_push, zscores: bool) -> dict:
                     row["zmax_" + name] = round(float(np.median(z[sel].max(1))), 2)
                     row["pushz_" + name] = np.round(np.median(snr[sel], 0), 2).tolist()
                     row["std_" + name] = np.round(np.median(np.sqrt(ls["vars"][0][sel]), 0), 3).tolist()
-    dump = os.environ.get("BENCH_PUSH_DUMP")
     if dump and sem.last_sweep_ is not None:
         np.savez(Path(dump) / f"{Path(log).stem}.npz", Y=model.features_.Y, X=model.features_.X,
                  mean=sem.last_sweep_["means"][0], var=sem.last_sweep_["vars"][0], p=sem.p_disturbed_,
@@ -137,6 +143,7 @@ def main(argv=None) -> int:
     ap.add_argument("--controller", default=None, help="ctc: computed torque on every log (default: the draw's)")
     ap.add_argument("--noise", type=float, default=None, help="torque noise std on every joint, N*m (default: the draw's)")
     ap.add_argument("--zscores", action="store_true")
+    ap.add_argument("--dump", default=None, help="folder for the last sweep's arrays per log (npz)")
     ap.add_argument("--cache", default="/tmp/bench_push_links")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
@@ -147,7 +154,7 @@ def main(argv=None) -> int:
     rows = []
     for seed in (int(s) for s in a.seeds.split(",")):
         log, labels, tau_push, link = make_log(seed, links, force, a.rate, a.seconds, cache, a.controller, a.noise)
-        row = run_one(log, labels, link, tau_push, a.zscores)
+        row = run_one(log, labels, link, tau_push, a.zscores, a.dump)
         print(json.dumps(row), flush=True)
         rows.append(row)
     print(json.dumps({"worst_unperturbed_correct": min(r["unperturbed_correct"] for r in rows),
