@@ -9,10 +9,11 @@ import math
 import numpy as np
 import pytest
 from scipy.special import logsumexp
+from scipy.stats import norm
 
 from mmgp.models.estep import chain_matrix, e_step
 from mmgp.models.hmm import ffbs_sample, forward_backward
-from mmgp.models.mstep import PushPrior, SweepParams
+from mmgp.models.mstep import PushPrior, SweepParams, link_components, push_loglik, pushed_logpdf
 from mmgp.models.sem import MultimodalSEM
 
 
@@ -105,3 +106,56 @@ def test_a_log_without_pushes_gets_nothing_flagged():
     m = MultimodalSEM(1, max_sweeps=12).fit(X, Y, t=t)
     assert m.disturbance_gain_ > 0.0
     assert m.disturbed_[pushed].mean() >= 0.9 and m.disturbed_[~pushed].mean() <= 0.05
+
+
+def _brute_push_density(y, mu, var, sd, floor, links):
+    """p(y | push) by enumeration: sum over the pushed link k (equal weights) of the product over
+    joints of either the untouched normal (j > k) or the equal-weight mixture of normals with the
+    spreads max(f Sigma_d, floor) (j <= k), from scipy's normal pdf."""
+    n = len(y)
+    total = 0.0
+    for k in links:
+        p = 1.0
+        for j in range(n):
+            if j < k:
+                sds = [np.sqrt(var[j] + max(f * sd[j], floor[j])) for f in (1.0, 0.1, 0.01)]
+                p *= np.mean([norm.pdf(y[j], mu[j], s) for s in sds])
+            else:
+                p *= norm.pdf(y[j], mu[j], np.sqrt(var[j]))
+        total += p / len(links)
+    return total
+
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_push_likelihood_is_the_enumerated_mixture_over_the_pushed_link(n):
+    # Independent reference: products of scipy normal densities over the n "joints 1..k pushed"
+    # subsets; every other subset (a distal joint pushed, a proximal one not) is absent.
+    rng = np.random.default_rng(n)
+    T = 6
+    mu, var = rng.normal(size=(T, n)), rng.uniform(0.05, 0.5, (T, n))
+    sd, floor = rng.uniform(0.5, 20.0, n), rng.uniform(0.1, 1.0, n)
+    Y = mu + rng.normal(size=(T, n)) * np.sqrt(var) * rng.uniform(0.5, 6.0, (T, n))
+    lu = norm.logpdf(Y, mu, np.sqrt(var))
+    got = push_loglik(lu, pushed_logpdf(Y, mu, var, sd, floor))
+    ref = [math.log(_brute_push_density(Y[t], mu[t], var[t], sd, floor, range(1, n + 1))) for t in range(T)]
+    np.testing.assert_allclose(got, ref, rtol=1e-10)
+
+
+def test_one_joint_push_is_the_single_normal_with_sigma_d():
+    rng = np.random.default_rng(0)
+    mu, var, y = rng.normal(size=(5, 1)), rng.uniform(0.1, 1.0, (5, 1)), rng.normal(size=(5, 1)) * 3
+    got = push_loglik(norm.logpdf(y, mu, np.sqrt(var)), pushed_logpdf(y, mu, var, np.array([4.0]), np.array([1.0])))
+    np.testing.assert_allclose(got, norm.logpdf(y[:, 0], mu[:, 0], np.sqrt(var[:, 0] + 4.0)), rtol=1e-12)
+
+
+def test_a_proximal_push_favours_the_proximal_links():
+    # A 7-joint sample off the model on joints 1-2 only: the link posterior (softmax of the
+    # components) puts its mass on k = 2, where the enumeration's largest term sits.
+    n = 7
+    mu, var = np.zeros((1, n)), np.full((1, n), 0.01)
+    Y = np.zeros((1, n))
+    Y[0, :2] = [0.5, -0.4]
+    sd, floor = np.full(n, 4.0), np.full(n, 0.25)
+    comp = link_components(norm.logpdf(Y, mu, np.sqrt(var)), pushed_logpdf(Y, mu, var, sd, floor))[0]
+    terms = [_brute_push_density(Y[0], mu[0], var[0], sd, floor, [k]) for k in range(1, n + 1)]
+    assert int(np.argmax(comp)) == int(np.argmax(terms)) == 1

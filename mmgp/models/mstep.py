@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy.special import logsumexp
 
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
@@ -43,6 +44,7 @@ class SweepParams:
     p_leave: float
     sigma_d: np.ndarray
     calib: np.ndarray
+    sigma_floor: np.ndarray | None = None   # (n,) Sigma_d's floor, N^2*m^2 (None before the first)
 
 
 @dataclass
@@ -203,13 +205,50 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         vars_.append(var)
         loglik[:, k] = _gauss_logpdf(Y, mean, var).sum(1)
         if disturbance:
-            ll_push = _gauss_logpdf(Y, mean, var + params.sigma_d)
-            if n > 1:
-                # A push on one link loads only some joints: per joint, a 50/50 mixture of
-                # "untouched" and "pushed", so unaffected joints cost at most log 2 each.
-                ll_push = np.logaddexp(_gauss_logpdf(Y, mean, var), ll_push) - np.log(2.0)
-            loglik[:, K + k] = ll_push.sum(1)
+            # A push acts on one link: the chain mixture (push_loglik) over which link, each
+            # loaded joint from the scale mixture (pushed_logpdf).
+            lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
+            loglik[:, K + k] = push_loglik(_gauss_logpdf(Y, mean, var), lp)
     return Emissions(mus, vars_, loglik)
+
+
+# Scales of Sigma_d in the pushed component of a multi-joint log (see :func:`pushed_logpdf`).
+PUSH_SCALES = (1.0, 0.1, 0.01)
+
+
+def pushed_logpdf(Y: np.ndarray, mean: np.ndarray, var: np.ndarray, sigma_d: np.ndarray,
+                  floor: np.ndarray | None = None) -> np.ndarray:
+    """Per-joint log density (T, n) of a pushed sample: N(mean, var + Sigma_d) on one joint
+    (n = 1); on several joints an equal-weight scale mixture over ``PUSH_SCALES`` of Sigma_d, each
+    scaled spread at least ``floor`` (n,) N^2*m^2. Why a mixture: Sigma_d pools every push of
+    the log, and a push on a distal link loads the proximal joints through long lever arms, so
+    Sigma_d there is set by the hardest shoves; a proximal or light push, a few predictive
+    standard deviations off, then fits "untouched" better than "pushed"."""
+    if Y.shape[1] == 1:
+        return _gauss_logpdf(Y, mean, var + sigma_d)
+    parts = [_gauss_logpdf(Y, mean, var + (sigma_d * f if floor is None else np.maximum(sigma_d * f, floor)))
+             for f in PUSH_SCALES]
+    return logsumexp(np.stack(parts), 0) - np.log(len(PUSH_SCALES))
+
+
+def link_components(lu: np.ndarray, lp: np.ndarray) -> np.ndarray:
+    """(T, n) log densities of "the push acts on link k" for k = 1..n (column k - 1): joints
+    1..k pushed (``lp`` (T, n)), joints k+1..n untouched (``lu`` (T, n)). Joints are in chain
+    order, base first: a wrench on link k produces torque J_k^T F on joints 1..k only."""
+    head = np.cumsum(lp, 1)
+    tail = np.zeros_like(lu)
+    tail[:, :-1] = np.cumsum(lu[:, :0:-1], 1)[:, ::-1]
+    return head + tail
+
+
+def push_loglik(lu: np.ndarray, lp: np.ndarray) -> np.ndarray:
+    """(T,) log-likelihood of the disturbance state from per-joint log densities (T, n) of
+    "untouched" ``lu`` and "pushed" ``lp``: a mixture over the pushed link, equal weights
+    (:func:`link_components`); O(T n)."""
+    n = lu.shape[1]
+    if n == 1:
+        return lp[:, 0]
+    return logsumexp(link_components(lu, lp), 1) - np.log(n)
 
 
 def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: SweepParams, *,
@@ -239,7 +278,8 @@ def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: 
         var_s = np.stack(em.vars)[mode_of, np.arange(T)]
         if dist.sum() >= 3:
             excess = ((Y - mu_s) ** 2 - var_s)[dist].mean(0)
-            params.sigma_d = np.maximum(excess, prior.floor_z ** 2 * np.median(var_s, 0))
+            params.sigma_floor = prior.floor_z ** 2 * np.median(var_s, 0)
+            params.sigma_d = np.maximum(excess, params.sigma_floor)
         trans = _transition_counts(states, K, starts)
         n0 = prior.n_pushes
         params.p_enter = (trans["enter"] + n0) / (trans["undisturbed"] + n0 * prior.gap_len)

@@ -10,7 +10,12 @@ Emission (per joint independent, product over joints):
 - ``d = 1``: ``N(y_t; mu_kt, sigma2_kt + Sigma_d)``, with ``Sigma_d`` (diagonal, per joint)
   re-estimated every sweep from the samples currently labelled disturbed. For K = 1 this is the
   source's disturbance mode ``N(mu, Sigma + Sigma_d)`` around the nominal mode; for K > 1 a
-  push can happen in any mode, so the disturbance is centred on the sample's own mode.
+  push can happen in any mode, so the disturbance is centred on the sample's own mode. On
+  several joints (in chain order, base first) a push acts on one link k, loading joints 1..k
+  only: the emission is a mixture over k of "joints 1..k pushed, k+1..n as in d = 0", and each
+  pushed joint a scale mixture of ``Sigma_d`` (x 1, 0.1, 0.01, floored) so that proximal and
+  light pushes are not measured against the spread of the hardest distal shoves
+  (:func:`.mstep.push_loglik`, :func:`.mstep.pushed_logpdf`).
 
 With a ``basis`` (T, n, p) (e.g. a robot's inertial-parameter regressor), mode k's mean is
 ``basis @ coef_k`` plus its GP, the coefficients re-fitted robustly on the mode's undisturbed
