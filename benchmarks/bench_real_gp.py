@@ -46,7 +46,8 @@ PY = [sys.executable, "-m", "mmgp.cli"]
 
 
 def fmt(v) -> str:
-    return "[" + " ".join(f"{x:.4f}" for x in v) + f"] mean {float(np.mean(v)):.4f}"
+    # three significant digits: on these logs several joints reach nMSE below 1e-4
+    return "[" + " ".join(f"{x:.3g}" for x in v) + f"] mean {float(np.mean(v)):.3g}"
 
 
 def command(args: list[str]) -> float:
