@@ -111,18 +111,29 @@ def _refuse_duplicates(names: Sequence[str], path: Path) -> None:
         seen[name] = i
 
 
-def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
+def _parquet_schema(path: Path):
     import pyarrow.parquet as pq
 
     try:
-        schema = pq.read_schema(path)
+        return pq.read_schema(path)
     except Exception as exc:  # pyarrow raises several types for files that are not Parquet
         raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
+
+
+def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
+    import pyarrow.parquet as pq
+
+    schema = _parquet_schema(path)
     _refuse_duplicates(list(schema.names), path)
     try:
         df = pq.read_table(path).to_pandas()
     except Exception as exc:
         raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
+    return df, _parquet_metadata(schema, path)
+
+
+def _parquet_metadata(schema, path: Path) -> dict:
+    """The contract's file metadata (robot, urdf, joint_names) of a Parquet schema."""
     meta = {}
     for k, v in (schema.metadata or {}).items():
         key = k.decode(errors="replace")
@@ -136,7 +147,7 @@ def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
         except (ValueError, RecursionError):
             raise InputError("metadata 'joint_names' is not a JSON list of strings", file=path) from None
         meta["joint_names"] = names
-    return df, meta
+    return meta
 
 
 def _csv_bytes(path: Path) -> bytes:
@@ -543,9 +554,15 @@ def log_from_arrays(t, q, tau, dq=None, ddq=None) -> RobotLog:
 
 
 def names_a_robot(log) -> bool:
-    """Whether a log (path or RobotLog) names a robot or URDF in its metadata."""
+    """Whether a log (path or RobotLog) names a robot or URDF in its metadata (a path's Parquet
+    schema only is read; CSV logs carry no metadata). A missing file answers True, so the robot
+    loader reports it."""
     if hasattr(log, "metadata") and hasattr(log, "q"):
         meta = log.metadata
+    elif not Path(log).is_file():
+        return True
+    elif _check_file(Path(log)) == "parquet":
+        meta = _parquet_metadata(_parquet_schema(Path(log)), Path(log))
     else:
-        meta = read_table_header(log)[1] if Path(log).is_file() else {"robot": "?"}
+        meta = {}
     return bool(meta.get("robot") or meta.get("urdf"))
