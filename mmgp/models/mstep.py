@@ -203,12 +203,13 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         var = var * params.calib[k]
         mus.append(mean)
         vars_.append(var)
-        loglik[:, k] = _gauss_logpdf(Y, mean, var).sum(1)
+        lu = _gauss_logpdf(Y, mean, var)      # (T, n) per joint, untouched
+        loglik[:, k] = lu.sum(1)
         if disturbance:
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
             # loaded joint from the scale mixture (pushed_logpdf).
             lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
-            loglik[:, K + k] = push_loglik(_gauss_logpdf(Y, mean, var), lp)
+            loglik[:, K + k] = push_loglik(lu, lp)
     return Emissions(mus, vars_, loglik)
 
 
