@@ -262,10 +262,22 @@ def _read_table(path: Path) -> tuple[pd.DataFrame, dict]:
 
 
 def read_table_header(path: str | os.PathLike) -> tuple[list[str], dict]:
-    """(column names, file metadata) of a log or labels file, read as :func:`read_log` reads it."""
+    """(column names, file metadata) of a log or labels file, read as :func:`read_log` reads it
+    but without its rows: a Parquet file's schema, a CSV file's header line (CSV carries no
+    metadata)."""
     path = Path(path)
-    df, meta = _read_table(path)
-    return [str(c) for c in df.columns], meta
+    if _check_file(path) == "parquet":
+        schema = _parquet_schema(path)
+        _refuse_duplicates(list(schema.names), path)
+        return [str(c) for c in schema.names], _parquet_metadata(schema, path)
+    try:
+        data = _csv_bytes(path)
+    except OSError as exc:
+        raise InputError(f"cannot read the file ({exc.strerror or describe(exc)})", file=path) from None
+    start = _BLANK_LINES.match(data).end()
+    brk = _LINE_BREAK.search(data, start)
+    header = data[start:brk.start() if brk else len(data)].decode("utf-8")
+    return _csv_header(header, _csv_separator(header, path), path), {}
 
 
 def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
@@ -554,15 +566,13 @@ def log_from_arrays(t, q, tau, dq=None, ddq=None) -> RobotLog:
 
 
 def names_a_robot(log) -> bool:
-    """Whether a log (path or RobotLog) names a robot or URDF in its metadata (a path's Parquet
-    schema only is read; CSV logs carry no metadata). A missing file answers True, so the robot
+    """Whether a log (path or RobotLog) names a robot or URDF in its metadata (read by
+    :func:`read_table_header`, without the rows). A missing file answers True, so the robot
     loader reports it."""
     if hasattr(log, "metadata") and hasattr(log, "q"):
         meta = log.metadata
     elif not Path(log).is_file():
         return True
-    elif _check_file(Path(log)) == "parquet":
-        meta = _parquet_metadata(_parquet_schema(Path(log)), Path(log))
     else:
-        meta = {}
+        meta = read_table_header(log)[1]
     return bool(meta.get("robot") or meta.get("urdf"))

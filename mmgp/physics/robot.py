@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.metadata
-import json
 import os
 import sys
 import tempfile
@@ -29,6 +28,7 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
+from ..data.logs import read_table_header
 from ..errors import InputError, describe, one_line
 from .inertial import transport_matrix
 
@@ -472,34 +472,9 @@ def _log_header(log_path) -> tuple[str | None, dict, int | None]:
     """(file, metadata, number of q_ columns) of a log path or an mmgp.io.RobotLog."""
     if hasattr(log_path, "metadata") and hasattr(log_path, "q"):
         return str(log_path.path), dict(log_path.metadata), int(log_path.q.shape[1])
-    path = Path(log_path)
-    if not path.is_file():
-        raise InputError("file does not exist", file=path)
-    meta: dict = {}
-    try:
-        if path.suffix.lower() in (".parquet", ".pq"):
-            import pyarrow.parquet as pq
-
-            schema = pq.read_schema(path)
-            cols = list(schema.names)
-            for k, v in (schema.metadata or {}).items():
-                key = k.decode(errors="replace")
-                if key in ("robot", "urdf", "joint_names"):
-                    meta[key] = v.decode(errors="replace")
-        else:
-            import pandas as pd
-
-            cols = list(pd.read_csv(path, nrows=0).columns)
-    except Exception as exc:
-        raise InputError(f"unreadable file ({type(exc).__name__}: {exc})", file=path) from None
-    if "joint_names" in meta:
-        try:
-            meta["joint_names"] = [str(s) for s in json.loads(meta["joint_names"])]
-        except (ValueError, TypeError):
-            raise InputError("metadata 'joint_names' is not a JSON list of strings", file=path) from None
-    # distinct names: a duplicated column is the log reader's error to name, not an extra joint
-    nq = len({str(c) for c in cols if str(c).startswith("q_") and str(c)[2:].isdigit()})
-    return str(path), meta, (nq or None)
+    cols, meta = read_table_header(log_path)
+    nq = sum(1 for c in cols if c.startswith("q_") and c[2:].isdigit())
+    return str(log_path), meta, (nq or None)
 
 
 def load_robot(robot: str | None = None, urdf: str | os.PathLike | None = None,
