@@ -130,6 +130,10 @@ class MultimodalGP(BaseEstimator):
         Sweeps after convergence whose posterior marginals are averaged into the labels.
     mode_smoothing_s : float > 0, default 4.0
         Running-median length in s of the residuals clustered into the initial modes.
+    min_mode_s : float >= 0, default 4.0
+        With ``n_modes="auto"``, a number of modes is accepted only if each of its modes holds
+        for this long in one stretch: a payload stays on for seconds to minutes, a push lasts
+        0.2-3 s (:func:`mmgp.models.sem.select_n_modes`).
     calibrate : bool, default True
         Scale each mode's predictive variance per joint by its undisturbed mean z^2 (>= 1).
     objective : "loo" or "marginal", default "loo"
@@ -162,7 +166,7 @@ class MultimodalGP(BaseEstimator):
                  friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
                  gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
                  tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, abstain=True,
-                 average_last=5, mode_smoothing_s=4.0, calibrate=True, objective="loo", ard=True,
+                 average_last=5, mode_smoothing_s=4.0, min_mode_s=4.0, calibrate=True, objective="loo", ard=True,
                  device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
         self.disturbance = disturbance
@@ -192,6 +196,7 @@ class MultimodalGP(BaseEstimator):
         self.abstain = abstain
         self.average_last = average_last
         self.mode_smoothing_s = mode_smoothing_s
+        self.min_mode_s = min_mode_s
         self.calibrate = calibrate
         self.objective = objective
         self.ard = ard
@@ -240,6 +245,8 @@ class MultimodalGP(BaseEstimator):
             bad("tol_changed", "a fraction in (0, 1]")
         if not (_is_number(self.mode_smoothing_s) and self.mode_smoothing_s > 0):
             bad("mode_smoothing_s", "a positive number of seconds")
+        if not (_is_number(self.min_mode_s) and self.min_mode_s >= 0):
+            bad("min_mode_s", "a non-negative number of seconds")
         if not isinstance(self.seed, (int, np.integer)) or isinstance(self.seed, bool):
             bad("seed", "an integer")
         if self.progress is not None and not callable(self.progress):
@@ -321,7 +328,7 @@ class MultimodalGP(BaseEstimator):
         kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis)
         if self.n_modes == "auto":
-            sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
+            sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, min_mode_s=self.min_mode_s, **kw)
         else:
             sem, selection = MultimodalSEM(n_modes=int(self.n_modes), **kw).fit(feats.X, feats.Y, **data), None
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)

@@ -181,11 +181,12 @@ def test_training_report_shows_the_mode_selection(trained, tmp_path):
     from mmgp.evaluation.reports import write_training_report
 
     rep = json.loads((trained / "report.json").read_text())
-    rep["mode_selection"] = {"scores": {"1": -512.25, "2": -498.125, "3": -503.5}, "chosen": 2}
+    rep["mode_selection"] = {"scores": {"1": -512.25, "2": -498.125, "3": -503.5}, "chosen": 2, "min_mode_s": 4.0,
+                             "longest_run_s": {"1": [20.0], "2": [12.5, 6.25], "3": [9.0, 6.0, 1.5]}}
     page = read_page(write_training_report(tmp_path, rep))
     rows = page.table("mode-selection")
-    assert [(number(r[0]), number(r[1]), r[2]["text"]) for r in rows] == \
-        [(1, -512.25, "no"), (2, -498.125, "yes"), (3, -503.5, "no")]
+    assert [(number(r[0]), number(r[1]), r[2]["text"], r[3]["text"]) for r in rows] == \
+        [(1, -512.25, "20", "no"), (2, -498.125, "12.5, 6.25", "yes"), (3, -503.5, "9, 6, 1.5", "no")]
     assert page.images == []                                           # no plots in that folder: none shown
 
 

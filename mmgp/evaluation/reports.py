@@ -75,9 +75,12 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
             page.figure(out / name, caption)
     sel = report.get("mode_selection")
     if sel:
-        page.section("Number of modes", "BIC-style score on the chain's log marginal likelihood; the highest wins.")
-        rows = [[int(k), v, int(k) == sel["chosen"]] for k, v in sel["scores"].items()]
-        page.table(["modes", "score", "chosen"], rows, kind="mode-selection")
+        page.section("Number of modes", "Tried in increasing order: K is kept while it raises the BIC-style score "
+                     "on the chain's log marginal likelihood and each of its modes holds for at least "
+                     f"{sel.get('min_mode_s', 0)} s in one stretch (a payload lasts, a push does not).")
+        runs = sel.get("longest_run_s", {})
+        rows = [[int(k), v, runs.get(k, runs.get(str(k))), int(k) == sel["chosen"]] for k, v in sel["scores"].items()]
+        page.table(["modes", "score", "longest stretch of each mode [s]", "chosen"], rows, kind="mode-selection")
     page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
                                        _hyperparameter_rows(report), kind="hyperparameters")
     page.section("Summary").json(report, "report")

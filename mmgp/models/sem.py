@@ -393,16 +393,54 @@ class MultimodalSEM:
         return self.n_modes * per_mode + (self.n_modes > 1) + (2 + n if self.disturbance else 0)
 
 
+def longest_runs_s(labels: np.ndarray, t: np.ndarray | None, n_modes: int, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """(n_modes,) the longest unbroken stretch of each mode label in ``labels`` (T,), in seconds
+    of ``t`` (T,) (in samples without times); a stretch ends at a label change or where a new log
+    starts (``starts``). 0 for a mode no sample carries."""
+    labels = np.asarray(labels)
+    T = len(labels)
+    cut = np.zeros(T, bool)
+    cut[0] = True
+    cut[1:] = labels[1:] != labels[:-1]
+    cut[[s for s in starts if 0 < s < T]] = True
+    first = np.flatnonzero(cut)
+    last = np.r_[first[1:], T] - 1
+    if t is None:
+        dur = (last - first + 1).astype(float)
+    else:
+        t = np.asarray(t, dtype=np.float64)
+        dt = float(np.median(np.diff(t))) if T > 1 else 0.0
+        dur = t[last] - t[first] + dt
+    out = np.zeros(n_modes)
+    np.maximum.at(out, labels[first], dur)
+    return out
+
+
 def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None,
-                   **kw) -> tuple[MultimodalSEM, dict]:
-    """Choose K by a BIC-style score on the chain's log marginal likelihood of the final sweep
-    (itself built from out-of-sample GP predictions): score = log p(Y) - 0.5 log(T) * n_params."""
+                   min_mode_s: float = 4.0, **kw) -> tuple[MultimodalSEM, dict]:
+    """Choose K: the candidates are tried in increasing order; K is kept while it raises a
+    BIC-style score on the chain's log marginal likelihood of the final sweep (itself built from
+    out-of-sample GP predictions), score = log p(Y) - 0.5 log(T) * n_params, and every one of
+    its modes holds for at least ``min_mode_s`` seconds in one stretch (not tested without ``t``).
+    The first K that fails either test ends the search.
+
+    Why the duration test: a dynamic mode (a payload on or off) lasts far longer than a push
+    (0.2-3 s). On logs without a mode change, the extra modes the score alone picked were pushes
+    and stuck-joint stretches that a GP of their own fits better than the disturbance state
+    does; none of them held longer than 3 s (independent 1-DOF validation logs: 0.6-3.0 s),
+    while true payload stretches last 5-30 s."""
     T, n = np.asarray(Y).reshape(len(Y), -1).shape
     d = np.asarray(X).shape[1]
-    scores, models = {}, {}
-    for K in candidates:
+    scores, longest, models = {}, {}, {}
+    best = None
+    for K in sorted(candidates):
         m = MultimodalSEM(n_modes=K, **kw).fit(X, Y, t=t, starts=starts, basis=basis, sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
+        longest[K] = longest_runs_s(m.labels_, t, K, starts).round(3).tolist()
         models[K] = m
-    best = max(scores, key=scores.get)
-    return models[best], {"scores": scores, "chosen": best}
+        lasting = K == 1 or t is None or min(longest[K]) >= min_mode_s
+        if best is not None and (scores[K] <= scores[best] or not lasting):
+            break
+        best = K
+    return models[best], {"scores": scores, "longest_run_s": longest, "min_mode_s": min_mode_s,
+                          "chosen": best}

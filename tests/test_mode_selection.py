@@ -1,0 +1,68 @@
+"""Choosing the number of modes (``select_n_modes``): a mode must last, as a payload does."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.metrics import adjusted_rand_score
+
+from mmgp.models.sem import longest_runs_s, select_n_modes
+
+
+def _brute_longest(labels, t, K, starts):
+    """Longest stretch per mode by walking the samples one at a time."""
+    dt = float(np.median(np.diff(t)))
+    best = [0.0] * K
+    begin = 0
+    for i in range(1, len(labels) + 1):
+        if i == len(labels) or labels[i] != labels[begin] or i in starts:
+            best[labels[begin]] = max(best[labels[begin]], t[i - 1] - t[begin] + dt)
+            begin = i
+    return best
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_longest_runs_match_a_sample_by_sample_walk(seed):
+    rng = np.random.default_rng(seed)
+    T, K = 200, 3
+    labels = np.repeat(rng.integers(0, K, 40), rng.integers(1, 9, 40))[:T]
+    T = len(labels)
+    t = np.cumsum(rng.uniform(0.01, 0.03, T))
+    starts = sorted({0, int(rng.integers(1, T)), int(rng.integers(1, T))})
+    np.testing.assert_allclose(longest_runs_s(labels, t, K, starts), _brute_longest(labels, t, K, starts), rtol=1e-12)
+
+
+def test_a_mode_no_sample_carries_lasts_zero_and_no_times_count_samples():
+    labels = np.array([0, 0, 0, 2, 2, 0])
+    np.testing.assert_array_equal(longest_runs_s(labels, None, 3), [3.0, 0.0, 2.0])
+
+
+def _signal(T, rate):
+    t = np.arange(T) / rate
+    x = 2.0 * np.sin(3.0 * t) + 0.3 * np.sin(7.1 * t)  # every 2 s visits the whole input range
+    return t, x, np.sin(1.5 * x)
+
+
+FAST = dict(disturbance=False, max_sweeps=8, fit_iter=20)
+
+
+def test_short_offsets_are_not_taken_for_a_mode():
+    # 1-2 s offsets of 1 N*m (push-like): a second mode raises the score, but none of its
+    # stretches lasts 4 s, so one mode is chosen.
+    t, x, f = _signal(400, 20.0)
+    bumps = np.zeros(len(t), bool)
+    for a, b in [(2.0, 3.5), (7.0, 8.0), (12.0, 14.0), (16.5, 17.5)]:
+        bumps |= (t >= a) & (t < b)
+    y = f + 1.0 * bumps + 0.05 * np.random.default_rng(0).normal(size=len(t))
+    model, sel = select_n_modes(x[:, None], y[:, None], t=t, min_mode_s=4.0, **FAST)
+    assert sel["scores"][2] > sel["scores"][1]                 # the score alone would take 2
+    assert min(sel["longest_run_s"][2]) <= 2.5                # the offset mode: at most the 2 s bump
+    assert sel["chosen"] == 1 and model.n_modes == 1 and 3 not in sel["scores"]
+
+
+def test_lasting_modes_are_kept():
+    t, x, f = _signal(400, 20.0)
+    mode = (((t >= 4) & (t < 9.5)) | ((t >= 13) & (t < 18))).astype(int)
+    y = f + 1.0 * mode + 0.05 * np.random.default_rng(0).normal(size=len(t))
+    model, sel = select_n_modes(x[:, None], y[:, None], t=t, min_mode_s=4.0, **FAST)
+    assert sel["chosen"] == 2 and adjusted_rand_score(mode, model.labels_) >= 0.95
+    assert min(sel["longest_run_s"][2]) >= 4.0
