@@ -33,7 +33,7 @@ _CHOICES = {"estep": ("mpm", "ffbs", "gibbs"), "semiparametric": ("residual", "f
             "gp_method": GP_METHODS}
 _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last",
                  "patience", "n_inducing")
-_NON_NEGATIVE = ("exclusion_s", "block_s")
+_NON_NEGATIVE = ("exclusion_s", "block_s", "min_push_s", "min_mode_s")
 _POSITIVE = ("push_s", "gap_s")
 _BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain")
 
@@ -95,6 +95,9 @@ class MultimodalGP(BaseEstimator):
         one sample costs the same at any sampling rate.
     push_floor_z : float >= 0, default 5.0
         A push is at least this many predictive standard deviations (floor of its spread).
+    min_push_s : float >= 0, default 0.15
+        A push lasts at least this long (s): shorter flagged stretches are model error (friction
+        at a velocity reversal, an impact) and are labelled undisturbed. Pushes last 0.2-3 s.
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).
@@ -165,7 +168,7 @@ class MultimodalGP(BaseEstimator):
                  rate_hz=None, diff_window_s=None, semiparametric="residual", exclusion_s=1.0, block_s=2.0,
                  friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
                  gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
-                 tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, abstain=True,
+                 tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, min_push_s=0.15, abstain=True,
                  average_last=5, mode_smoothing_s=4.0, min_mode_s=4.0, calibrate=True, objective="loo", ard=True,
                  device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
@@ -193,6 +196,7 @@ class MultimodalGP(BaseEstimator):
         self.push_s = push_s
         self.gap_s = gap_s
         self.push_floor_z = push_floor_z
+        self.min_push_s = min_push_s
         self.abstain = abstain
         self.average_last = average_last
         self.mode_smoothing_s = mode_smoothing_s
@@ -245,8 +249,6 @@ class MultimodalGP(BaseEstimator):
             bad("tol_changed", "a fraction in (0, 1]")
         if not (_is_number(self.mode_smoothing_s) and self.mode_smoothing_s > 0):
             bad("mode_smoothing_s", "a positive number of seconds")
-        if not (_is_number(self.min_mode_s) and self.min_mode_s >= 0):
-            bad("min_mode_s", "a non-negative number of seconds")
         if not isinstance(self.seed, (int, np.integer)) or isinstance(self.seed, bool):
             bad("seed", "an integer")
         if self.progress is not None and not callable(self.progress):
@@ -275,7 +277,8 @@ class MultimodalGP(BaseEstimator):
         return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
                     max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
                     patience=self.patience, average_last=self.average_last, push_s=self.push_s,
-                    gap_s=self.gap_s, push_floor_z=self.push_floor_z, abstain=self.abstain, max_support=self.max_support,
+                    gap_s=self.gap_s, push_floor_z=self.push_floor_z, min_push_s=self.min_push_s, abstain=self.abstain,
+                    max_support=self.max_support,
                     final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
                     fit_points=self.fit_points, fit_iter=self.fit_iter,
                     exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,

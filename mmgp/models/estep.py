@@ -43,3 +43,30 @@ def e_step(loglik: np.ndarray, A: np.ndarray, init_p: np.ndarray, states: np.nda
     T = len(new_states)
     log_joint = float(loglik[np.arange(T), new_states].sum() + sequence_log_prior(new_states, A, init_p, starts))
     return EStepResult(new_states, probs, float(log_marg), log_joint)
+
+
+def runs_shorter_than(flags: np.ndarray, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """(T,) bool: the samples of every unbroken stretch of True in ``flags`` (T,) that is shorter
+    than ``min_len`` samples; a stretch ends where a new log starts (``starts``)."""
+    flags = np.asarray(flags, bool)
+    T = len(flags)
+    if min_len <= 1 or not flags.any():
+        return np.zeros(T, bool)
+    cut = np.ones(T, bool)
+    cut[1:] = flags[1:] != flags[:-1]
+    cut[[s for s in starts if 0 < s < T]] = True
+    first = np.flatnonzero(cut)
+    length = np.diff(np.r_[first, T])
+    short = flags[first] & (length < min_len)
+    return np.repeat(short, length)
+
+
+def drop_short_pushes(states: np.ndarray, n_modes: int, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """``states`` (T,) (k + K d) with every disturbed stretch shorter than ``min_len`` samples set
+    undisturbed in its own mode. A push lasts (0.2-3 s); a blip of a few samples off the model is
+    the model's own error (friction at a velocity reversal, an impact), not a push."""
+    short = runs_shorter_than(states >= n_modes, min_len, starts)
+    out = np.array(states, copy=True)
+    out[short] %= n_modes
+    return out
+

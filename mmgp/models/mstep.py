@@ -58,16 +58,18 @@ class PushPrior:
     gap_len: float
     n_pushes: float
     floor_z: float
+    min_len: float = 0.0     # shortest push, samples (shorter flagged stretches are unflagged)
 
     @classmethod
     def in_seconds(cls, t_axis: np.ndarray | None, push_s: float, gap_s: float, n_pushes: float,
-                   floor_z: float) -> "PushPrior":
-        """Durations ``push_s``, ``gap_s`` in s at the median sample period of ``t_axis`` (T,);
-        without times, 5 and 20 samples (the per-sample priors of earlier versions)."""
+                   floor_z: float, min_push_s: float = 0.0) -> "PushPrior":
+        """Durations ``push_s``, ``gap_s``, ``min_push_s`` in s at the median sample period of
+        ``t_axis`` (T,); without times, 5 and 20 samples (the per-sample priors of earlier
+        versions) and no shortest push."""
         if t_axis is None or len(t_axis) < 2:
             return cls(5.0, 20.0, n_pushes, floor_z)
         dt = float(np.median(np.diff(t_axis)))
-        return cls(max(push_s / dt, 2.0), max(gap_s / dt, 4.0), n_pushes, floor_z)
+        return cls(max(push_s / dt, 2.0), max(gap_s / dt, 4.0), n_pushes, floor_z, min_push_s / dt)
 
     @property
     def p_enter(self) -> float:
