@@ -96,8 +96,9 @@ class MultimodalGP(BaseEstimator):
     push_floor_z : float >= 0, default 5.0
         A push is at least this many predictive standard deviations (floor of its spread).
     min_push_s : float >= 0, default 0.15
-        A push lasts at least this long (s): shorter flagged stretches are model error (friction
-        at a velocity reversal, an impact) and are labelled undisturbed. Pushes last 0.2-3 s.
+        A push lasts at least this long (s): shorter flagged stretches of the final labels are
+        model error (friction at a velocity reversal, an impact) and are labelled undisturbed.
+        Pushes last 0.2-3 s.
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmgp.models.estep import drop_short_pushes, runs_shorter_than
+from mmgp.models.estep import runs_shorter_than
 from mmgp.models.sem import MultimodalSEM
 
 
@@ -28,13 +28,6 @@ def test_short_runs_match_a_sample_by_sample_walk(seed):
     starts = sorted({0, int(rng.integers(1, len(flags))), int(rng.integers(1, len(flags)))})
     for min_len in (0, 1, 2, 3.5, 5):
         np.testing.assert_array_equal(runs_shorter_than(flags, min_len, starts), _brute_short(flags, min_len, starts))
-
-
-def test_dropping_short_pushes_keeps_each_samples_mode():
-    K = 2
-    states = np.array([0, 2, 0, 1, 3, 3, 3, 1, 3, 0])        # pushes (k + K) of 1, 3 and 1 samples
-    np.testing.assert_array_equal(drop_short_pushes(states, K, 2, (0,)), [0, 0, 0, 1, 3, 3, 3, 1, 1, 0])
-    np.testing.assert_array_equal(drop_short_pushes(states, K, 0, (0,)), states)
 
 
 def test_blips_of_model_error_are_not_flagged_but_pushes_are():

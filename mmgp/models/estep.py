@@ -60,13 +60,3 @@ def runs_shorter_than(flags: np.ndarray, min_len: float, starts: Sequence[int] =
     short = flags[first] & (length < min_len)
     return np.repeat(short, length)
 
-
-def drop_short_pushes(states: np.ndarray, n_modes: int, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
-    """``states`` (T,) (k + K d) with every disturbed stretch shorter than ``min_len`` samples set
-    undisturbed in its own mode. A push lasts (0.2-3 s); a blip of a few samples off the model is
-    the model's own error (friction at a velocity reversal, an impact), not a push."""
-    short = runs_shorter_than(states >= n_modes, min_len, starts)
-    out = np.array(states, copy=True)
-    out[short] %= n_modes
-    return out
-
