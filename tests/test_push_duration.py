@@ -31,25 +31,28 @@ def test_short_runs_match_a_sample_by_sample_walk(seed):
 
 
 def test_blips_of_model_error_are_not_flagged_but_pushes_are():
-    # 20 Hz, 30 s: five pushes of 0.4-1 s, and ten one-sample spikes as large as a push (the
-    # model's own error at, e.g., a friction reversal).
-    rate, T = 20.0, 600
+    # 100 Hz, 20 s: five pushes of 0.4-1 s, and ten blips of 3 samples (0.03 s) as large as a
+    # push (the model's own error at, e.g., a friction reversal).
+    rate, T = 100.0, 2000
     t = np.arange(T) / rate
     x = 2.0 * np.sin(3.0 * t) + 0.3 * np.sin(7.1 * t)
     rng = np.random.default_rng(3)
     y = np.sin(1.5 * x) + 0.05 * rng.normal(size=T)
     pushed = np.zeros(T, bool)
-    for a, n in [(40, 8), (150, 14), (260, 20), (380, 10), (500, 16)]:
+    for a, n in [(150, 40), (520, 70), (900, 100), (1300, 50), (1700, 80)]:
         pushed[a:a + n] = True
         y[a:a + n] += rng.choice([-1, 1]) * rng.uniform(0.6, 0.9)
-    spikes = np.array([20, 95, 120, 210, 230, 330, 350, 440, 470, 560])
-    y[spikes] += rng.choice([-1, 1], len(spikes)) * 0.8
-    kw = dict(max_sweeps=15, seed=0)
+    blips = np.array([60, 330, 420, 700, 780, 1100, 1180, 1450, 1580, 1900])
+    blip = (blips[:, None] + np.arange(3)).ravel()
+    y[blip] += np.repeat(rng.choice([-1, 1], len(blips)), 3) * 0.8
+    kw = dict(max_sweeps=12, seed=0)
     without = MultimodalSEM(1, min_push_s=0.0, **kw).fit(x[:, None], y[:, None], t=t)
     with_min = MultimodalSEM(1, min_push_s=0.15, **kw).fit(x[:, None], y[:, None], t=t)
-    assert without.disturbed_[spikes].mean() >= 0.5           # without a shortest push, spikes are "pushes"
-    assert not with_min.disturbed_[spikes].any()
+    assert without.disturbed_[blip].mean() >= 0.5             # without a shortest push, blips are "pushes"
+    assert not with_min.disturbed_[blip].any()
     assert with_min.disturbed_[pushed].mean() >= 0.9
     assert with_min.disturbed_[~pushed].mean() <= 0.02
-    short = runs_shorter_than(with_min.disturbed_, 3, (0,))
-    assert not short.any()                                     # no flagged stretch under 0.15 s = 3 samples
+    assert not runs_shorter_than(with_min.disturbed_, 15, (0,)).any()   # no flagged stretch under 0.15 s
+    # The sweeps are the same; only the final labels differ, and only on short stretches.
+    changed = without.disturbed_ != with_min.disturbed_
+    assert runs_shorter_than(without.disturbed_, 15, (0,))[changed].all()
