@@ -135,9 +135,11 @@ class MultimodalGP(BaseEstimator):
     mode_smoothing_s : float > 0, default 4.0
         Running-median length in s of the residuals clustered into the initial modes.
     min_mode_s : float >= 0, default 4.0
-        With ``n_modes="auto"``, a number of modes is accepted only if each of its modes holds
-        for this long in one stretch: a payload stays on for seconds to minutes, a push lasts
-        0.2-3 s (:func:`mmgp.models.sem.select_n_modes`).
+        A mode lasts at least this long (s): a payload stays on for seconds to minutes, a push
+        lasts 0.2-3 s. With ``n_modes="auto"`` a number of modes is accepted only if each of its
+        modes holds this long in one stretch (:func:`mmgp.models.sem.select_n_modes`); with
+        several modes, shorter stretches of one mode in the final labels take a neighbouring
+        stretch's mode.
     calibrate : bool, default True
         Scale each mode's predictive variance per joint by its undisturbed mean z^2 (>= 1).
     objective : "loo" or "marginal", default "loo"
@@ -283,6 +285,7 @@ class MultimodalGP(BaseEstimator):
                     final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
                     fit_points=self.fit_points, fit_iter=self.fit_iter,
                     exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
+                    min_mode_s=self.min_mode_s,
                     calibrate=self.calibrate, shared_basis=basis_kind == "payload", seed=self.seed,
                     progress=self.progress,
                     gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device})
@@ -332,7 +335,7 @@ class MultimodalGP(BaseEstimator):
         kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis)
         if self.n_modes == "auto":
-            sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, min_mode_s=self.min_mode_s, **kw)
+            sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
         else:
             sem, selection = MultimodalSEM(n_modes=int(self.n_modes), **kw).fit(feats.X, feats.Y, **data), None
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)

@@ -165,15 +165,14 @@ def test_bad_yaml_is_one_line_naming_file_and_line(tmp_path):
     assert res.exit_code == 2 and "n_mode" in res.stderr and "n_modes" in res.stderr
 
 
-def planted_two_mode_log(path, T=400, rate=20.0, seed=0):
-    """1-DOF log whose torque jumps by 1 N*m in two stretches of 5.5 and 5 s (mode 1: a payload
-    stays on for seconds; --modes auto accepts a mode only if it holds >= min_mode_s, 4 s),
-    noise 0.05 N*m."""
+def planted_two_mode_log(path, T=480, rate=20.0, seed=0):
+    """1-DOF log whose torque jumps by 1 N*m in two stretches of 5.5 s (mode 1), noise 0.05 N*m;
+    every stretch of either mode lasts >= 4 s (a mode lasts: ``min_mode_s``)."""
     from mmgp.data.logs import write_log
 
     t = np.arange(T) / rate
     q = 2.0 * np.sin(3.0 * t) + 0.3 * np.sin(7.1 * t)
-    mode = (((t >= 4) & (t < 9.5)) | ((t >= 13) & (t < 18))).astype(int)
+    mode = (((t >= 4) & (t < 9.5)) | ((t >= 14) & (t < 19.5))).astype(int)
     tau = np.sin(1.5 * q) + 1.0 * mode + 0.05 * np.random.default_rng(seed).normal(size=T)
     write_log(path, t, q[:, None], tau[:, None])
     return mode

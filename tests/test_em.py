@@ -371,7 +371,9 @@ def test_planted_modes_are_recovered(estep):
     rng = np.random.default_rng(0)
     mode = (((t >= 4) & (t < 8)) | ((t >= 11) & (t < 13.5))).astype(int)
     y = f + 1.0 * mode + 0.05 * rng.normal(size=len(t))
-    m = MultimodalSEM(n_modes=2, disturbance=False, estep=estep, max_sweeps=15, seed=0).fit(x[:, None], y[:, None], t=t)
+    # min_mode_s 0: the planted stretches (4 and 2.5 s) test the E-steps, not the shortest mode.
+    m = MultimodalSEM(n_modes=2, disturbance=False, estep=estep, max_sweeps=15, min_mode_s=0.0,
+                      seed=0).fit(x[:, None], y[:, None], t=t)
     assert adjusted_rand_score(mode, m.labels_) >= 0.95
     assert m.p_mode_.shape == (len(t), 2)
     np.testing.assert_allclose(m.p_mode_.sum(1), 1.0, atol=1e-9)
@@ -454,7 +456,7 @@ def test_basis_mean_extrapolates_a_planted_mode_offset():
     # Shared physics in the basis plus a small wiggle only the GP can follow.
     y = 0.8 * np.sin(x) + 0.2 * np.sin(3.0 * x) + mode * 1.5 * np.cos(x) + 0.05 * rng.normal(size=len(t))
     basis = regressor(x)
-    m = MultimodalSEM(n_modes=2, disturbance=False, max_sweeps=15, seed=0).fit(
+    m = MultimodalSEM(n_modes=2, disturbance=False, max_sweeps=15, min_mode_s=0.0, seed=0).fit(
         x[:, None], y[:, None], t=t, basis=basis)
     assert adjusted_rand_score(mode, m.labels_) >= 0.95
     payload = 1 if (m.labels_[mode == 1] == 1).mean() > 0.5 else 0
@@ -472,7 +474,8 @@ def test_a_mode_no_sample_ends_in_still_gets_a_defined_gp():
     t, x, f = planted_signal()
     mode = (((t >= 4) & (t < 8)) | ((t >= 11) & (t < 13.5))).astype(int)
     y = f + 1.0 * mode + 0.05 * np.random.default_rng(0).normal(size=len(t))
-    m = MultimodalSEM(n_modes=3, disturbance=False, max_sweeps=10, seed=0).fit(x[:, None], y[:, None], t=t)
+    m = MultimodalSEM(n_modes=3, disturbance=False, max_sweeps=10, min_mode_s=0.0, seed=0).fit(
+        x[:, None], y[:, None], t=t)
     sizes = np.bincount(m.labels_, minlength=3)
     assert (sizes == 0).any(), sizes            # the case under test happens
     for k in range(3):

@@ -60,9 +60,53 @@ def test_short_offsets_are_not_taken_for_a_mode():
 
 
 def test_lasting_modes_are_kept():
-    t, x, f = _signal(400, 20.0)
-    mode = (((t >= 4) & (t < 9.5)) | ((t >= 13) & (t < 18))).astype(int)
+    t, x, f = _signal(480, 20.0)
+    mode = (((t >= 4) & (t < 9.5)) | ((t >= 14) & (t < 19.5))).astype(int)     # every stretch >= 4 s
     y = f + 1.0 * mode + 0.05 * np.random.default_rng(0).normal(size=len(t))
     model, sel = select_n_modes(x[:, None], y[:, None], t=t, min_mode_s=4.0, **FAST)
     assert sel["chosen"] == 2 and adjusted_rand_score(mode, model.labels_) >= 0.95
     assert min(sel["longest_run_s"][2]) >= 4.0
+    lab = model.labels_
+    lengths = np.diff(np.r_[0, np.flatnonzero(lab[1:] != lab[:-1]) + 1, len(lab)])
+    assert lengths.min() >= 80                                 # every stretch lasts 4 s (20 Hz)
+
+
+def test_merging_short_stretches_by_hand():
+    from mmgp.models.estep import merge_short_runs
+
+    lab = np.array([0, 0, 0, 0, 1, 0, 0, 0, 2, 2, 1, 1, 1, 1, 1])
+    # "1" (1 sample) joins the longer left stretch; then "2 2" (2) is between 8 zeros and 5 ones.
+    np.testing.assert_array_equal(merge_short_runs(lab, 3), [0] * 10 + [1] * 5)
+    # A new log at sample 5: the first log ends in the lone "1", which joins its own log's zeros.
+    np.testing.assert_array_equal(merge_short_runs(lab, 3, (0, 5)), [0] * 8 + [1] * 7)
+    np.testing.assert_array_equal(merge_short_runs(lab, 1), lab)
+    # three lone samples: the first (shortest, earliest) joins its only neighbour, 0; the last
+    # then joins the longer stretch of 0s
+    np.testing.assert_array_equal(merge_short_runs(np.array([1, 0, 1]), 5), [0, 0, 0])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_merged_stretches_all_last_and_long_ones_keep_their_label(seed):
+    from mmgp.models.estep import merge_short_runs
+
+    rng = np.random.default_rng(seed)
+    lab = np.repeat(rng.integers(0, 3, 80), rng.integers(1, 12, 80))
+    starts = sorted({0, int(rng.integers(1, len(lab)))})
+    out = merge_short_runs(lab, 6, starts)
+    long_before = ~_short_stretches(lab, 6, starts)
+    np.testing.assert_array_equal(out[long_before], lab[long_before])
+    bounds = starts + [len(lab)]
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        seg = out[a:b]
+        lengths = np.diff(np.r_[0, np.flatnonzero(seg[1:] != seg[:-1]) + 1, len(seg)])
+        assert len(lengths) == 1 or lengths.min() >= 6
+
+
+def _short_stretches(lab, min_len, starts):
+    out = np.zeros(len(lab), bool)
+    begin = 0
+    for i in range(1, len(lab) + 1):
+        if i == len(lab) or lab[i] != lab[begin] or i in starts:
+            out[begin:i] = (i - begin) < min_len
+            begin = i
+    return out

@@ -149,10 +149,11 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     # no trimmed start, no push-size floor and no abstention: here the learner only confirms spans a
     # robust scan found, and with training's start and floor the payload of a simulated Panda went to
     # the re-identified body instead (tests/test_diagnose.py::test_finds_payload_mass). No shortest
-    # push either: the scan's spans are judged by their own statistic, the learner only confirms.
+    # push either (the scan's spans are judged by their own statistic, the learner only confirms)
+    # and no shortest mode (diagnosis judges each mode by its own held-out gain).
     kw = dict(max_support=min(250, len(idx)), fit_points=min(200, len(idx)), fit_iter=15, max_sweeps=8,
               min_sweeps=4, average_last=3, final_support=min(250, len(idx)), estep="mpm", abstain=False,
-              start_trim=(), push_floor_z=0.0, min_push_s=0.0)
+              start_trim=(), push_floor_z=0.0, min_push_s=0.0, min_mode_s=0.0)
     kw.update(sem_kw)
     t0 = time.perf_counter()
     sem = MultimodalSEM(n_modes=n_modes, disturbance=True, seed=seed, **kw).fit(X, resid[idx], t=t[idx])

@@ -60,3 +60,25 @@ def runs_shorter_than(flags: np.ndarray, min_len: float, starts: Sequence[int] =
     short = flags[first] & (length < min_len)
     return np.repeat(short, length)
 
+
+
+def merge_short_runs(labels: np.ndarray, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """``labels`` (T,) with every stretch of one label shorter than ``min_len`` samples relabelled
+    as a neighbouring stretch, shortest first, taking the longer neighbour's label (the earlier
+    one on a tie), until every stretch of each log (``starts``) lasts ``min_len`` or the log is
+    one stretch. Stretches of ``min_len`` or more keep their label."""
+    out = np.array(labels, copy=True)
+    T = len(out)
+    bounds = sorted({0, T} | {int(s) for s in starts if 0 < s < T})
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        seg = out[a:b]                      # a view: relabelled in place
+        while True:
+            first = np.r_[0, np.flatnonzero(seg[1:] != seg[:-1]) + 1]
+            length = np.diff(np.r_[first, len(seg)])
+            if len(length) == 1 or length.min() >= min_len:
+                break
+            i = int(np.argmin(length))
+            left = length[i - 1] if i > 0 else -1
+            right = length[i + 1] if i + 1 < len(length) else -1
+            seg[first[i]:first[i] + length[i]] = seg[first[i - 1] if left >= right else first[i + 1]]
+    return out

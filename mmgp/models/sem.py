@@ -61,7 +61,7 @@ import numpy as np
 
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
-from .estep import chain_matrix, e_step, runs_shorter_than
+from .estep import chain_matrix, e_step, merge_short_runs, runs_shorter_than
 from .hmm import forward_backward
 from .mstep import ModeFitter, PushPrior, SweepParams, evenly_spaced, mode_emissions, update_parameters
 from .robust import basis_rank
@@ -95,6 +95,11 @@ class MultimodalSEM:
     exclusion_s, block_s : leave-window-out radius of the E-step likelihood and the block length
         of the hyperparameter objective, seconds (need ``t`` in ``fit``).
     mode_smoothing_s : running-median length of the residuals clustered into initial modes.
+    min_mode_s : a mode lasts at least this long, seconds: in the final labels a shorter stretch
+        of one mode takes a neighbouring stretch's mode (:func:`.estep.merge_short_runs`; needs
+        ``t``; K > 1). On the UR5 validation log with a switching 0.8 kg payload, stretches of
+        1-1.5 s inside payload segments (poses where the payload barely loads the joints) were
+        called the other mode. :func:`select_n_modes` also requires every mode to last this long.
     calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
     shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
         payload) instead of one per joint.
@@ -120,6 +125,7 @@ class MultimodalSEM:
                  max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
                  final_support: int | None = 2000, gp_method: str = "auto", n_inducing: int = 2000,
                  exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0,
+                 min_mode_s: float = 4.0,
                  calibrate: bool = True, shared_basis: bool = False, push_s: float = 1.0, gap_s: float = 5.0,
                  push_prior_n: float = 3.0, push_floor_z: float = 5.0, min_push_s: float = 0.15,
                  start_trim: Sequence[float] = (0.8, 0.6),
@@ -334,6 +340,13 @@ class MultimodalSEM:
         self.p_mode_ = p_mode[:, order]
         self.p_disturbed_ = p_dist
         self.labels_ = self.p_mode_.argmax(1)
+        if K > 1 and fitter.t_axis is not None and self.min_mode_s > 0:
+            # A mode lasts: shorter stretches take a neighbouring stretch's mode (p_mode one-hot).
+            dt = float(np.median(np.diff(fitter.t_axis)))
+            lasting = merge_short_runs(self.labels_, self.min_mode_s / dt, starts)
+            moved = lasting != self.labels_
+            self.p_mode_[moved] = np.eye(K)[lasting[moved]]
+            self.labels_ = lasting
         self.disturbed_ = self.p_disturbed_ > 0.5
         self.sigma_d_ = params.sigma_d if self.disturbance else np.zeros(n)
         self.stay_prob_ = float(params.stay)
@@ -428,11 +441,12 @@ def longest_runs_s(labels: np.ndarray, t: np.ndarray | None, n_modes: int, start
 
 
 def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None,
-                   min_mode_s: float = 4.0, **kw) -> tuple[MultimodalSEM, dict]:
+                   **kw) -> tuple[MultimodalSEM, dict]:
     """Choose K: the candidates are tried in increasing order; K is kept while it raises a
     BIC-style score on the chain's log marginal likelihood of the final sweep (itself built from
     out-of-sample GP predictions), score = log p(Y) - 0.5 log(T) * n_params, and every one of
-    its modes holds for at least ``min_mode_s`` seconds in one stretch (not tested without ``t``).
+    its modes holds for at least ``min_mode_s`` seconds (a MultimodalSEM setting in ``kw``, default
+    4) in one stretch (not tested without ``t``).
     The first K that fails either test ends the search.
 
     Why the duration test: a dynamic mode (a payload on or off) lasts far longer than a push
@@ -442,6 +456,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     while true payload stretches last 5-30 s."""
     T, n = np.asarray(Y).reshape(len(Y), -1).shape
     d = np.asarray(X).shape[1]
+    min_mode_s = kw.get("min_mode_s", 4.0)
     scores, longest, models = {}, {}, {}
     best = None
     for K in sorted(candidates):
