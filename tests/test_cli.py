@@ -192,6 +192,7 @@ def test_modes_auto_picks_the_planted_two_modes(tmp_path):
     rep = json.loads((out / "report.json").read_text())
     assert rep["mode_selection"]["chosen"] == 2 and set(rep["mode_selection"]["scores"]) == {"1", "2", "3"}
     assert rep["n_modes"] == 2 and rep["config"]["max_sweeps"] == 8 and rep["config"]["n_modes"] == "auto"
+    assert "--modes auto: 2 mode(s); 3 rejected:" in res.output, res.output
     lab = pd.read_parquet(out / "labels.parquet")
     assert {"p_mode_0", "p_mode_1"} <= set(lab.columns) and "p_mode_2" not in lab.columns
     assert adjusted_rand_score(mode, lab["mode"]) >= 0.9
@@ -257,3 +258,17 @@ def test_every_command_refuses_to_write_over_or_around_its_inputs(trained, tmp_p
         assert "input" in res.output.lower(), (what, res.output)
     assert {p: _digest(p) for p in before} == before
     assert sorted(p.name for p in logs.iterdir()) == ["lever.urdf", "replica.parquet"]
+
+
+def test_train_says_why_modes_auto_stopped():
+    from mmgp.cli.train import _selection
+
+    short = {"mode_selection": {"scores": {"1": -10.0, "2": 5.0}, "longest_run_s": {"1": [21.0], "2": [3.6, 0.7]},
+                                "min_mode_s": 4.0, "chosen": 1}}
+    assert _selection(short) == (" --modes auto: 1 mode(s); 2 rejected: one of its modes lasted at most 0.7 s in "
+                                 "one stretch (< min_mode_s 4.0 s).")
+    lower = {"mode_selection": {"scores": {"1": -10.0, "2": -12.5}, "longest_run_s": {"1": [21.0], "2": [9.0, 8.0]},
+                                "min_mode_s": 4.0, "chosen": 1}}
+    assert _selection(lower) == " --modes auto: 1 mode(s); 2 rejected: scored lower (-12.5 vs -10.0)."
+    assert _selection({"mode_selection": None}) == ""
+

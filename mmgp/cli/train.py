@@ -58,7 +58,25 @@ def _summary(model) -> str:
     spec = model.robot_spec_ or {}
     return (f"{rep['n_samples']} samples, robot {spec.get('robot') or spec.get('urdf')}, {rep['n_modes']} mode(s), {rep['disturbance']['n_disturbed']} flagged "
             f"disturbed; {rep['n_sweeps']} sweeps ({'converged' if rep['converged'] else 'sweep limit'}), "
-            f"{rep['timings']['total_s']:.1f} s.{_shortened(rep)}")
+            f"{rep['timings']['total_s']:.1f} s.{_shortened(rep)}{_selection(rep)}")
+
+
+def _selection(rep: dict) -> str:
+    """Why --modes auto stopped where it did (the last K tried, if it was not kept)."""
+    sel = rep.get("mode_selection")
+    if not sel:
+        return ""
+    chosen, tried = int(sel["chosen"]), max(int(k) for k in sel["scores"])
+    if tried == chosen:
+        return f" --modes auto: {chosen} mode(s), the most tried."
+    scores = {int(k): v for k, v in sel["scores"].items()}
+    runs = {int(k): v for k, v in sel.get("longest_run_s", {}).items()}
+    if scores[tried] <= scores[chosen]:
+        why = f"scored lower ({scores[tried]:.1f} vs {scores[chosen]:.1f})"
+    else:
+        why = (f"one of its modes lasted at most {min(runs[tried]):.2g} s in one stretch "
+               f"(< min_mode_s {sel.get('min_mode_s')} s)")
+    return f" --modes auto: {chosen} mode(s); {tried} rejected: {why}."
 
 
 def _shortened(rep: dict) -> str:
