@@ -110,3 +110,22 @@ def _short_stretches(lab, min_len, starts):
             out[begin:i] = (i - begin) < min_len
             begin = i
     return out
+
+
+def test_a_candidate_whose_mode_cannot_last_is_abandoned_early():
+    from mmgp.models.sem import MultimodalSEM
+
+    # Offsets of 1 N*m lasting 3 s in all: a second mode made of them can never hold 4 s.
+    t, x, f = _signal(400, 20.0)
+    bumps = np.zeros(len(t), bool)
+    for a, b in [(3.0, 4.0), (9.0, 10.0), (15.0, 16.0)]:
+        bumps |= (t >= a) & (t < b)
+    y = f + 1.0 * bumps + 0.05 * np.random.default_rng(1).normal(size=len(t))
+    kw = dict(disturbance=False, max_sweeps=20, fit_iter=20, min_sweeps=4, patience=2)
+    full = MultimodalSEM(n_modes=2, **kw).fit(x[:, None], y[:, None], t=t)
+    assert np.bincount(full.labels_, minlength=2).min() * 0.05 < 4.0     # the small mode is under 4 s
+    quick = MultimodalSEM(n_modes=2, abandon_short_modes=True, **kw).fit(x[:, None], y[:, None], t=t)
+    assert quick.abandoned_ and not full.abandoned_
+    assert len(quick.trace_) < len(full.trace_)
+    _, sel = select_n_modes(x[:, None], y[:, None], t=t, **kw)
+    assert sel["chosen"] == 1

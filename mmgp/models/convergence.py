@@ -79,6 +79,10 @@ class ConvergenceMonitor:
         # labels), so it is not waited for.
         return bool(moved < self.tol_changed and (flat or moved < 0.2 * self.tol_changed))
 
+    def abandon(self, probs: np.ndarray) -> None:
+        """Stop now without converging; the posterior is the last sweep's marginals (T, S)."""
+        self._post_sum, self._n_avg, self.averaging = np.array(probs, copy=True), 1, True
+
     def posterior(self) -> np.ndarray:
         """The averaged marginals (T, S) of the sweeps after convergence."""
         return self._post_sum / max(self._n_avg, 1)
