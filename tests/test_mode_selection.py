@@ -129,3 +129,15 @@ def test_a_candidate_whose_mode_cannot_last_is_abandoned_early():
     assert len(quick.trace_) < len(full.trace_)
     _, sel = select_n_modes(x[:, None], y[:, None], t=t, **kw)
     assert sel["chosen"] == 1
+
+
+def test_the_selection_judges_stretches_before_merging():
+    # Offsets on for 1.2 s, off for 0.8 s, for 12 s: no stretch lasts 4 s, but merging the short
+    # stretches (the 0.8 s gaps first) would join the flicker into one 12 s block of the offset.
+    t, x, f = _signal(480, 20.0)
+    flicker = (t >= 6) & (t < 18) & ((t - 6) % 2 < 1.2)
+    y = f + 1.0 * flicker + 0.05 * np.random.default_rng(2).normal(size=len(t))
+    model, sel = select_n_modes(x[:, None], y[:, None], t=t, **FAST)
+    assert sel["scores"][2] > sel["scores"][1]
+    assert min(sel["longest_run_s"][2]) <= 1.5
+    assert sel["chosen"] == 1

@@ -161,7 +161,9 @@ class MultimodalSEM:
         ``last_sweep_`` (the last sweep's per-mode means/variances (T, n), log-likelihoods (T, S),
         calibration, sigma_d and states: for diagnosing where errors sit; None without sweeps).
         Mode order in ``last_sweep_`` is the sweep's internal one, not the final nominal-first
-        order.
+        order. ``longest_stretch_s_`` (K,): each mode's longest unbroken stretch (s, samples
+        without ``t``) in the labels before short stretches are merged (``min_mode_s``);
+        ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``).
 
         One mode without the disturbance mode has no labels to learn: no sweeps are run
         (``n_sweeps_`` 0, ``trace_`` empty); one GP is fitted on every sample (:meth:`_fit_single`).
@@ -190,6 +192,7 @@ class MultimodalSEM:
         self.p_enter_ = self.p_leave_ = 0.0
         self.trace_, self.converged_, self.n_sweeps_, self.last_sweep_ = [], True, 0, None
         self.abandoned_ = False
+        self.longest_stretch_s_ = longest_runs_s(self.labels_, fitter.t_axis, 1, starts)
         self.log_marginal_ = float("nan")
         self.disturbance_gain_ = 0.0
         self._final_gps(fitter, [0], [None])
@@ -354,6 +357,8 @@ class MultimodalSEM:
         self.p_mode_ = p_mode[:, order]
         self.p_disturbed_ = p_dist
         self.labels_ = self.p_mode_.argmax(1)
+        # How long each mode holds before any merging (merging can join a flicker into long stretches).
+        self.longest_stretch_s_ = longest_runs_s(self.labels_, fitter.t_axis, K, starts)
         if K > 1 and fitter.t_axis is not None and self.min_mode_s > 0:
             # A mode lasts: shorter stretches take a neighbouring stretch's mode (p_mode one-hot).
             dt = float(np.median(np.diff(fitter.t_axis)))
@@ -477,7 +482,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
         m = MultimodalSEM(n_modes=K, abandon_short_modes=K > 1, **kw).fit(X, Y, t=t, starts=starts, basis=basis,
                                                                           sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
-        longest[K] = longest_runs_s(m.labels_, t, K, starts).round(3).tolist()
+        longest[K] = m.longest_stretch_s_.round(3).tolist()
         models[K] = m
         lasting = K == 1 or t is None or (min(longest[K]) >= min_mode_s and not m.abandoned_)
         if best is not None and (scores[K] <= scores[best] or not lasting):
