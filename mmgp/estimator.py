@@ -331,7 +331,8 @@ class MultimodalGP(BaseEstimator):
             raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
         kw = self._sem_settings(basis_kind)
         shortened = windows_for_duration(min(lg.t[-1] - lg.t[0] for lg in logs_), exclusion_s=self.exclusion_s,
-                                         block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s)
+                                         block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
+                                         min_push_s=self.min_push_s, min_mode_s=self.min_mode_s)
         kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis)
         if self.n_modes == "auto":
