@@ -270,5 +270,8 @@ def test_train_says_why_modes_auto_stopped():
     lower = {"mode_selection": {"scores": {"1": -10.0, "2": -12.5}, "longest_run_s": {"1": [21.0], "2": [9.0, 8.0]},
                                 "min_mode_s": 4.0, "chosen": 1}}
     assert _selection(lower) == " --modes auto: 1 mode(s); 2 rejected: scored lower (-12.5 vs -10.0)."
+    lower["mode_selection"]["abandoned"] = {"1": False, "2": True}
+    assert _selection(lower) == (" --modes auto: 1 mode(s); 2 rejected: scored lower (-12.5 vs -10.0); stopped early, "
+                                 "one of its modes held less than 4.0 s of samples.")
     assert _selection({"mode_selection": None}) == ""
 

@@ -489,4 +489,4 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
             break
         best = K
     return models[best], {"scores": scores, "longest_run_s": longest, "min_mode_s": min_mode_s,
-                          "chosen": best}
+                          "abandoned": {K: bool(m.abandoned_) for K, m in models.items()}, "chosen": best}
