@@ -76,7 +76,8 @@ def _selection(rep: dict) -> str:
     else:
         why = (f"one of its modes lasted at most {min(runs[tried]):.2g} s in one stretch "
                f"(< min_mode_s {sel.get('min_mode_s')} s)")
-    if (sel.get("abandoned") or {}).get(str(tried), (sel.get("abandoned") or {}).get(tried)):
+    abandoned = {int(k): v for k, v in (sel.get("abandoned") or {}).items()}
+    if abandoned.get(tried):
         why += f"; stopped early, one of its modes held less than {sel.get('min_mode_s')} s of samples"
     return f" --modes auto: {chosen} mode(s); {tried} rejected: {why}."
 

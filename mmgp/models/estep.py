@@ -61,7 +61,6 @@ def runs_shorter_than(flags: np.ndarray, min_len: float, starts: Sequence[int] =
     return np.repeat(short, length)
 
 
-
 def merge_short_runs(labels: np.ndarray, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
     """``labels`` (T,) with every stretch of one label shorter than ``min_len`` samples relabelled
     as a neighbouring stretch, shortest first, taking the longer neighbour's label (the earlier

@@ -226,8 +226,10 @@ class MultimodalSEM:
         timings = {"init_s": time.perf_counter() - t0, "gp_s": 0.0, "estep_s": 0.0}
         sweep = 0
         self.abandoned_, short = False, 0
+        # A mode's shortest stretch in samples (0: no such rule without times or with one mode).
         dt = float(np.median(np.diff(fitter.t_axis))) if fitter.t_axis is not None else math.inf
-        too_short = self.min_mode_s / dt if (self.abandon_short_modes and K > 1) else 0.0
+        min_mode_len = self.min_mode_s / dt if K > 1 else 0.0
+        too_short = min_mode_len if self.abandon_short_modes else 0.0
         while True:
             ts = time.perf_counter()
             optimise = (sweep in refit_at) and not monitor.averaging
@@ -259,7 +261,7 @@ class MultimodalSEM:
                 self.abandoned_ = True
                 break
             sweep += 1
-        self._finish(fitter, monitor, params, starts, prior.min_len)
+        self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len)
         self.n_sweeps_ = sweep
         timings["total_s"] = time.perf_counter() - t0
         self.timings_ = timings
@@ -341,9 +343,10 @@ class MultimodalSEM:
         return KMeans(n_clusters=self.n_modes, n_init=10, random_state=0).fit(smooth).labels_
 
     def _finish(self, fitter: ModeFitter, monitor: ConvergenceMonitor, params: SweepParams, starts,
-                min_push_len: float = 0.0) -> None:
+                min_push_len: float = 0.0, min_mode_len: float = 0.0) -> None:
         """Labels from the averaged marginals, nominal mode first, and the final GPs; flagged
-        stretches shorter than ``min_push_len`` samples are unflagged (p_disturbed 0)."""
+        stretches shorter than ``min_push_len`` samples are unflagged (p_disturbed 0), stretches
+        of one mode shorter than ``min_mode_len`` samples take a neighbouring stretch's mode."""
         K, T, n = self.n_modes, *fitter.Y.shape
         post = monitor.posterior()
         p_mode = np.clip(post[:, :K] + (post[:, K:] if self.disturbance else 0.0), 0.0, 1.0)
@@ -359,10 +362,9 @@ class MultimodalSEM:
         self.labels_ = self.p_mode_.argmax(1)
         # How long each mode holds before any merging (merging can join a flicker into long stretches).
         self.longest_stretch_s_ = longest_runs_s(self.labels_, fitter.t_axis, K, starts)
-        if K > 1 and fitter.t_axis is not None and self.min_mode_s > 0:
+        if min_mode_len > 1:
             # A mode lasts: shorter stretches take a neighbouring stretch's mode (p_mode one-hot).
-            dt = float(np.median(np.diff(fitter.t_axis)))
-            lasting = merge_short_runs(self.labels_, self.min_mode_s / dt, starts)
+            lasting = merge_short_runs(self.labels_, min_mode_len, starts)
             moved = lasting != self.labels_
             self.p_mode_[moved] = np.eye(K)[lasting[moved]]
             self.labels_ = lasting
