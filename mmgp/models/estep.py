@@ -45,20 +45,43 @@ def e_step(loglik: np.ndarray, A: np.ndarray, init_p: np.ndarray, states: np.nda
     return EStepResult(new_states, probs, float(log_marg), log_joint)
 
 
+def stretches(labels: np.ndarray, starts: Sequence[int] = (0,)) -> tuple[np.ndarray, np.ndarray]:
+    """First index and length of every unbroken stretch of one value in ``labels`` (T,), T >= 1;
+    a stretch also ends where a new log starts (``starts``)."""
+    labels = np.asarray(labels)
+    T = len(labels)
+    cut = np.ones(T, bool)
+    cut[1:] = labels[1:] != labels[:-1]
+    cut[[s for s in starts if 0 < s < T]] = True
+    first = np.flatnonzero(cut)
+    return first, np.diff(np.r_[first, T])
+
+
 def runs_shorter_than(flags: np.ndarray, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
     """(T,) bool: the samples of every unbroken stretch of True in ``flags`` (T,) that is shorter
     than ``min_len`` samples; a stretch ends where a new log starts (``starts``)."""
     flags = np.asarray(flags, bool)
-    T = len(flags)
     if min_len <= 1 or not flags.any():
-        return np.zeros(T, bool)
-    cut = np.ones(T, bool)
-    cut[1:] = flags[1:] != flags[:-1]
-    cut[[s for s in starts if 0 < s < T]] = True
-    first = np.flatnonzero(cut)
-    length = np.diff(np.r_[first, T])
-    short = flags[first] & (length < min_len)
-    return np.repeat(short, length)
+        return np.zeros(len(flags), bool)
+    first, length = stretches(flags, starts)
+    return np.repeat(flags[first] & (length < min_len), length)
+
+
+def longest_runs_s(labels: np.ndarray, t: np.ndarray | None, n_modes: int, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """(n_modes,) the longest unbroken stretch of each mode label in ``labels`` (T,), in seconds
+    of ``t`` (T,) (in samples without times); a stretch ends at a label change or where a new log
+    starts (``starts``). 0 for a mode no sample carries."""
+    labels = np.asarray(labels)
+    first, length = stretches(labels, starts)
+    if t is None:
+        dur = length.astype(float)
+    else:
+        t = np.asarray(t, dtype=np.float64)
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        dur = t[first + length - 1] - t[first] + dt
+    out = np.zeros(n_modes)
+    np.maximum.at(out, labels[first], dur)
+    return out
 
 
 def merge_short_runs(labels: np.ndarray, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
@@ -72,8 +95,7 @@ def merge_short_runs(labels: np.ndarray, min_len: float, starts: Sequence[int] =
     for a, b in zip(bounds[:-1], bounds[1:]):
         seg = out[a:b]                      # a view: relabelled in place
         while True:
-            first = np.r_[0, np.flatnonzero(seg[1:] != seg[:-1]) + 1]
-            length = np.diff(np.r_[first, len(seg)])
+            first, length = stretches(seg)
             if len(length) == 1 or length.min() >= min_len:
                 break
             i = int(np.argmin(length))

@@ -61,12 +61,12 @@ import numpy as np
 
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
-from .estep import chain_matrix, e_step, merge_short_runs, runs_shorter_than
+from .estep import chain_matrix, e_step, longest_runs_s, merge_short_runs, runs_shorter_than
 from .hmm import forward_backward
 from .mstep import ModeFitter, PushPrior, SweepParams, evenly_spaced, mode_emissions, update_parameters
 from .robust import basis_rank
 
-__all__ = ["MultimodalSEM", "SweepRecord", "select_n_modes"]
+__all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
 
 
 class MultimodalSEM:
@@ -436,29 +436,6 @@ class MultimodalSEM:
     def n_parameters(self, d: int, n: int) -> int:
         per_mode = n * (d + 2) + 1 + getattr(self, "basis_rank_", 0)
         return self.n_modes * per_mode + (self.n_modes > 1) + (2 + n if self.disturbance else 0)
-
-
-def longest_runs_s(labels: np.ndarray, t: np.ndarray | None, n_modes: int, starts: Sequence[int] = (0,)) -> np.ndarray:
-    """(n_modes,) the longest unbroken stretch of each mode label in ``labels`` (T,), in seconds
-    of ``t`` (T,) (in samples without times); a stretch ends at a label change or where a new log
-    starts (``starts``). 0 for a mode no sample carries."""
-    labels = np.asarray(labels)
-    T = len(labels)
-    cut = np.zeros(T, bool)
-    cut[0] = True
-    cut[1:] = labels[1:] != labels[:-1]
-    cut[[s for s in starts if 0 < s < T]] = True
-    first = np.flatnonzero(cut)
-    last = np.r_[first[1:], T] - 1
-    if t is None:
-        dur = (last - first + 1).astype(float)
-    else:
-        t = np.asarray(t, dtype=np.float64)
-        dt = float(np.median(np.diff(t))) if T > 1 else 0.0
-        dur = t[last] - t[first] + dt
-    out = np.zeros(n_modes)
-    np.maximum.at(out, labels[first], dur)
-    return out
 
 
 def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None,
