@@ -223,9 +223,11 @@ class Diagnoser(BaseEstimator):
         # that starts from least squares can settle where the pushes dragged it
         em = st.run_learner(prob, self.em_modes, max_points=self.em_points, seed=self.seed) \
             if self.separate != "none" else None
-        lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2,
-                             init=None if em is None else 1.0 - em["p_disturbed"])
-        start, reid = reidentify(prob, lib, alpha=self.alpha, min_gain=self.reid_min_gain)
+        init = None if em is None else 1.0 - em["p_disturbed"]
+        lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2, init=init)
+        lib_rest = st.fit_library(st.without_body(prob), prob.ctx, np.ones(len(prob.t), bool), relinearise=2,
+                                  init=init)
+        start, reid = reidentify(prob, lib, lib_rest, alpha=self.alpha, min_gain=self.reid_min_gain)
         laps("reidentify_s")
         pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, em=em, **push_kw)
         use = ~pushes.disturbed

@@ -367,6 +367,19 @@ def raw_residual(prob: Problem, phys: PhysicsFit) -> np.ndarray:
     return prob.r_raw - A @ np.array([coef.get(k, 0.0) for k in keys])
 
 
+def without_body(prob: Problem) -> Problem:
+    """The problem whose library is what a re-identified body must beat (``reidentify``): the
+    library less the rigid body, each payload candidate a whole attached body (its ten
+    parameters, ``AttachedBody``). A point mass leaves an attached body's own inertia, which the
+    re-identified body's links next to it reproduce in part (a simulated Panda with a 1.2 kg
+    payload of 5 cm radius: the body took 82% of what the point mass left, and the payload with
+    it), while the contract names any rigid mass on the distal link a payload."""
+    from ..physics.effects import AttachedBody
+
+    library = [AttachedBody(e.index) if e.name == "payload" else e for e in prob.library if e.scope != "model"]
+    return dataclasses.replace(prob, library=library)
+
+
 def with_modes(prob: Problem, ms) -> tuple[Problem, list]:
     """The problem once a mode switch is found: the switching effect leaves the library and a
     mode-gated rigid body (``modes.ModeBody``: the switching link's ten parameters, per mode

@@ -400,6 +400,29 @@ class Payload(Effect):
                 f"at [{com}] m (link frame)")
 
 
+class AttachedBody(Effect):
+    """A rigid body attached to link ``index``: the link's ten inertial parameters (mass, first
+    moments, inertia about the link origin), linear. Not a contract effect (no name): the yardstick
+    a re-identified rigid body is judged against (``mmgp.diagnosis.reidentify``), since CONTRACT
+    section 3 names a rigid mass on the distal link a ``payload``, and such a mass has its own
+    inertia, which :class:`Payload`'s point mass lacks."""
+
+    scope = "link"
+
+    def atoms(self):
+        return tuple(("body", self.index, i) for i in range(10))
+
+    def columns(self, ctx):
+        Y = ctx.link_regressor(self.index)
+        return [Y[:, :, i] for i in range(10)]
+
+    def where(self, ctx):
+        return {"link": ctx.link_names[self.index]}
+
+    def affected_joints(self, ctx):
+        return list(range(self.index + 1))
+
+
 class InertialParameters(Effect):
     """The rigid body re-identified: the base parameters the trajectory determines
     (``ctx.base``, :func:`mmgp.physics.identification.base_parameters`) move by ``beta`` from the
