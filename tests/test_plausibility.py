@@ -86,6 +86,10 @@ def test_fit_and_magnitude_checks(panda, urdf_limits):
     under = {"effect": "torque_offset", "joint": "panda_joint1", "params": {"offset": -(effort - 1)}}
     assert "rated torque" in implausible(over, panda.pin_model, NAMES)
     assert implausible(under, panda.pin_model, NAMES) is None
+    enc = {"effect": "encoder_offset", "joint": "panda_joint7", "params": {"offset": 0.83}}
+    assert "encoder offset of 0.83 rad" in implausible(enc, panda.pin_model, NAMES)
+    enc["params"]["offset"] = -0.02                 # the size of the validation's concealed offset
+    assert implausible(enc, panda.pin_model, NAMES) is None
     total = sum(float(inert.get("value")) for inert in ET.parse(robot_urdf_path("panda")).getroot().iter("mass"))
     heavy = {"effect": "payload", "link": "panda_link7", "params": {"mass": 590.0}}
     assert total < 590 and "payload of 590" in implausible(heavy, panda.pin_model, NAMES)

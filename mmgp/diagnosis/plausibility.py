@@ -113,6 +113,13 @@ def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
     return out, bad
 
 
+#: Largest plausible encoder offset, rad (11.5 degrees). A robot that runs with its joint zero that
+#: far off would be seen to (calibrated arms are within a fraction of a degree). The real Panda's
+#: joint 7 came out with 0.83 +/- 0.25 rad; a centre-of-mass error of the hand (link 7, which the
+#: payload rule keeps out of the re-identified body) can look like one (not verified).
+MAX_ENCODER_OFFSET = 0.2
+
+
 def _effort(model, k: int) -> float:
     e = float(model.effortLimit[k]) if len(model.effortLimit) > k else 0.0
     return e if np.isfinite(e) and e > 0 else np.inf
@@ -129,6 +136,10 @@ def implausible(finding: dict, model, names: list) -> str | None:
             return f"a payload of {m:.3g} kg on {finding.get('link')} (the robot itself weighs {total:.3g} kg)"
     if k is None:
         return None
+    if finding["effect"] == "encoder_offset" and abs(float(p.get("offset", 0.0))) > MAX_ENCODER_OFFSET:
+        return (f"an encoder offset of {float(p['offset']):.3g} rad on {j}: a joint zero that far off would put "
+                f"every pose the robot reports visibly wrong (more than {MAX_ENCODER_OFFSET:g} rad); a mass or "
+                "centre-of-mass error of the links it moves can look like one")
     limit = _effort(model, k)
     for key in ("offset", "tau_c"):
         v = p.get(key)
