@@ -374,7 +374,7 @@ def without_body(prob: Problem) -> Problem:
     and a rigid mass has its own inertia, which a point mass lacks. (Measured on a simulated Panda
     with a 1.2 kg payload of 5 cm radius it moves little: the body's held-out gain over the library
     0.824 with a point mass, 0.818 with the whole body; what kept that body out was the joint
-    weighting of ``reidentify``.)
+    weighting of ``reidentify``.)"""
     from ..physics.effects import AttachedBody
 
     library = [AttachedBody(e.index) if e.name == "payload" else e for e in prob.library if e.scope != "model"]
