@@ -268,11 +268,7 @@ class Diagnoser(BaseEstimator):
         friction taken from the fitted model. The rigid body, when re-identified, is refitted
         physically consistent."""
         ctx, keys, A = lib.ctx, lib.keys, lib.A
-        # each joint weighted by its nominal residual's variance, fixed: every joint's error
-        # relative to the nominal model counts alike. Weights from the fitted model's own residual
-        # gave the real Panda's joint 1 0.001 of joint 7's weight; the re-identified body, shared
-        # by every joint, was then set by the others (joint 1 held-out 0.44 against nominal 0.048)
-        w = st.joint_weights(prob.r[use], prob.M[use])
+        w = st.nominal_weights(prob, use)
         rounds = 2 if any(e.name == "load_dependent_friction" for e in prob.library) else 1
         for k in range(rounds):
             # robust weights of the whole library's fit: a push the separation missed does not

@@ -50,14 +50,9 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     rb = rigid_body(prob.library)
     if not rb:
         return [], {}
-    from .stages import joint_weights, without_body
+    from .stages import nominal_weights, without_body
 
-    # joints weighted by their nominal residual's variance, fixed before either side is fitted:
-    # weights from the whole library's residual give the joints it fits best (where its 30-40
-    # base parameters soak up the last of the residual) the largest weight and tilt the test
-    # toward it (a simulated Panda with a payload: body "significant", p 1e-6; nominal weights:
-    # p 0.4; real Panda: p 1e-6 either way)
-    w = joint_weights(prob.r, prob.M)
+    w = nominal_weights(prob)       # fixed before either side is fitted
     ones = np.ones(len(prob.t), bool)
 
     def cv(fit, effects):
