@@ -101,8 +101,7 @@ def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
             out.append(f"{j}: even with the found physics the model predicts the torque worse than its mean "
                        f"(held-out nMSE {phys[j]:.3g}); findings on this joint are withheld")
             bad.add(j)
-    for j in names:
-        if j not in bad and phys.get(j, 0.0) > max(1.25 * nom.get(j, 0.0), nom.get(j, 0.0) + 0.01):
+        elif phys.get(j, 0.0) > max(1.25 * nom.get(j, 0.0), nom.get(j, 0.0) + 0.01):
             # told, withholding nothing: the joint's own findings may still be right, but what was
             # found elsewhere (a re-identified body shared by every joint) does not carry to it
             out.append(f"{j}: the found physics predicts this joint's held-out torque worse than the nominal "

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..physics.effects import build_atoms
 from ..physics.identification import fit_consistent, identifiability
-from .selection import FoldGrams, atom_indices, signed_rank_p
+from .selection import FoldGrams, signed_rank_p
 
 
 def rigid_body(library) -> list:
@@ -50,16 +50,17 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     rb = rigid_body(prob.library)
     if not rb:
         return [], {}
-    from .stages import nominal_weights, without_body
+    from .stages import nominal_weights
 
     w = nominal_weights(prob)       # fixed before either side is fitted
     ones = np.ones(len(prob.t), bool)
 
-    def cv(fit, effects):
+    def cv(fit):
+        # every atom of the fit's own library
         grams = FoldGrams(fit.A, prob.r, ones, prob.folds, W=lib.weights)
-        return grams.cv_errors(atom_indices(effects, {a: i for i, a in enumerate(fit.keys)}), w) @ w, grams.K
+        return grams.cv_errors(list(range(len(fit.keys))), w) @ w, grams.K
 
-    (e0, _), (e1, K) = cv(lib_rest, without_body(prob).library), cv(lib, prob.library)
+    (e0, _), (e1, K) = cv(lib_rest), cv(lib)
     # tried as one more candidate of the selection's first step: the same family-wise level
     level = alpha / max(len(prob.library), 1)
     p, gain = signed_rank_p(e0 - e1), float((e0.sum() - e1.sum()) / max(e0.sum(), 1e-300))

@@ -454,7 +454,6 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     while true payload stretches last 5-30 s."""
     T, n = np.asarray(Y).reshape(len(Y), -1).shape
     d = np.asarray(X).shape[1]
-    min_mode_s = kw.get("min_mode_s", 4.0)
     scores, longest, models = {}, {}, {}
     best = None
     for K in sorted(candidates):
@@ -463,9 +462,9 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         longest[K] = m.longest_stretch_s_.round(3).tolist()
         models[K] = m
-        lasting = K == 1 or t is None or (min(longest[K]) >= min_mode_s and not m.abandoned_)
+        lasting = K == 1 or t is None or (min(longest[K]) >= m.min_mode_s and not m.abandoned_)
         if best is not None and (scores[K] <= scores[best] or not lasting):
             break
         best = K
-    return models[best], {"scores": scores, "longest_run_s": longest, "min_mode_s": min_mode_s,
+    return models[best], {"scores": scores, "longest_run_s": longest, "min_mode_s": models[best].min_mode_s,
                           "abandoned": {K: bool(m.abandoned_) for K, m in models.items()}, "chosen": best}
