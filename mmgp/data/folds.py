@@ -59,7 +59,7 @@ def _blocks(ts: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
 # The shortest push and mode shrink with the others, in proportion to their defaults (0.15 s and
 # 4 s beside the 1 s exclusion window): a 24-sample push in a 0.04 s log is a push of that log.
 WINDOW_FRACTIONS = {"exclusion_s": 0.2, "block_s": 0.4, "mode_smoothing_s": 0.8, "min_push_s": 0.03,
-                    "min_mode_s": 0.8}
+                    "min_mode_s": 0.8, "push_scan_s": 0.04}
 
 
 def windows_for_duration(duration_s: float, **windows: float) -> dict:

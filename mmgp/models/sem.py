@@ -65,6 +65,7 @@ from .estep import chain_matrix, e_step, longest_runs_s, merge_short_runs, runs_
 from .hmm import forward_backward
 from .mstep import ModeFitter, PushPrior, SweepParams, evenly_spaced, mode_emissions, update_parameters
 from .robust import basis_rank
+from .scan import scan_probability, sustained_offset_scan
 
 __all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
 
@@ -117,6 +118,11 @@ class MultimodalSEM:
         of at most 0.14 s, at velocity reversals. Only the final labels: applied after every
         E-step, the short first flags of light pushes joined the GP's training samples, the GP
         learnt the push and five of 21 pushes vanished (validation val11: missed 0.31 -> 0.40).
+    push_scan_s, push_scan_z : a push is a sustained offset: in the final labels, undisturbed
+        samples whose residual (standardised, averaged over ``push_scan_s`` seconds of
+        undisturbed samples) stands more than ``push_scan_z`` robust standard deviations of that
+        average off on some joint are flagged too (:mod:`.scan`; needs ``t``; 0 s: off). Light
+        pushes 1-3 predictive standard deviations off for 0.2-2 s, which no single sample shows.
     start_trim : fractions of the samples kept by the successive refits of the start.
     start_z : robust z-score over which a sample starts disturbed.
     abstain : flag nothing when the disturbance states do not pay their BIC price.
@@ -133,6 +139,7 @@ class MultimodalSEM:
                  min_mode_s: float = 4.0, abandon_short_modes: bool = False,
                  calibrate: bool = True, shared_basis: bool = False, push_s: float = 1.0, gap_s: float = 5.0,
                  push_prior_n: float = 3.0, push_floor_z: float = 5.0, min_push_s: float = 0.15,
+                 push_scan_s: float = 0.2, push_scan_z: float = 6.0,
                  start_trim: Sequence[float] = (0.8, 0.6),
                  start_z: float = 3.0, abstain: bool = True, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
@@ -354,6 +361,8 @@ class MultimodalSEM:
         self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
         if self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0:
             p_dist = np.zeros(T)
+        if self.disturbance:
+            p_dist = self._scan_sustained(fitter, p_mode.argmax(1), p_dist, starts)
         p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
         # Mode 0 is the nominal mode: the one holding the most undisturbed probability mass.
         order = np.argsort(-(p_mode * (1 - p_dist)[:, None]).sum(0), kind="stable")
@@ -377,6 +386,25 @@ class MultimodalSEM:
         self.converged_ = monitor.converged
         self.log_marginal_ = monitor.trace[-1].log_marginal
         self._final_gps(fitter, order, params.hypers)
+
+    def _scan_sustained(self, fitter: ModeFitter, modes: np.ndarray, p_dist: np.ndarray, starts) -> np.ndarray:
+        """p_dist (T,) raised to the scan's probability where :func:`.scan.sustained_offset_scan`
+        finds a sustained offset among the undisturbed samples (residuals under each sample's
+        mode ``modes`` (T,) as the last sweep predicted them). Its own test, also where the chain
+        abstained: it judges averages against their measured spread, not single samples."""
+        if fitter.t_axis is None or self.push_scan_s <= 0:
+            self.scan_flagged_ = 0
+            return p_dist
+        last = self.last_sweep_
+        T = len(modes)
+        mean = np.stack(last["means"])[modes, np.arange(T)]
+        var = np.stack(last["vars"])[modes, np.arange(T)]
+        z = (fitter.Y - mean) / np.sqrt(var)
+        window = max(int(round(self.push_scan_s / float(np.median(np.diff(fitter.t_axis))))), 1)
+        flags, stat = sustained_offset_scan(z, p_dist <= 0.5, window, self.push_scan_z, starts)
+        self.scan_flagged_ = int(flags.sum())
+        p_scan = scan_probability(stat, T / window * z.shape[1])
+        return np.where(flags, np.maximum(p_dist, p_scan), p_dist)
 
     def _disturbance_gain(self, params: SweepParams, starts) -> float:
         """log p(Y) of the last sweep's chain minus that of the same chain without disturbance
