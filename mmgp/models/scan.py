@@ -17,6 +17,11 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.stats import norm
 
+# Residuals are clipped at this many standard deviations before averaging: the scan looks for
+# many moderate deviations in a row; a few large ones (a friction reversal's blip, which the
+# shortest-push rule unflags) are the chain's to judge, and must not make a 0.2 s "push".
+CLIP_Z = 3.0
+
 
 def masked_moving_average(z: np.ndarray, ok: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     """Centred running mean over ``window`` samples of ``z`` (T, n) using only samples with ``ok``
@@ -37,10 +42,11 @@ def sustained_offset_scan(z: np.ndarray, ok: np.ndarray, window: int, z_max: flo
     z (T, n): residuals standardised by each sample's predictive standard deviation; ok (T,):
     samples the labels call undisturbed (only these are averaged, scaled and flagged); window:
     samples averaged (centred); starts: first sample of each log (windows stay inside a log).
-    The running mean counts where at least half its window is ``ok``; its centre and spread per
+    Residuals are clipped at +-``CLIP_Z`` first. The running mean counts where at least half its window is ``ok``; its centre and spread per
     joint are the median and 1.4826 x the median absolute deviation over windows that are
     wholly ``ok``. Returns (flags (T,) bool, the largest joint's scaled deviation (T,))."""
     T = len(z)
+    z = np.clip(z, -CLIP_Z, CLIP_Z)
     window = max(int(window), 1)
     avg = np.zeros_like(z)
     frac = np.zeros(T)

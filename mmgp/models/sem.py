@@ -361,9 +361,12 @@ class MultimodalSEM:
         self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
         if self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0:
             p_dist = np.zeros(T)
-        if self.disturbance:
-            p_dist = self._scan_sustained(fitter, p_mode.argmax(1), p_dist, starts)
         p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
+        if self.disturbance:
+            # After the shortest-push rule (its blips are model error, part of the scan's
+            # reference), and the rule again on what the scan adds.
+            p_dist = self._scan_sustained(fitter, p_mode.argmax(1), p_dist, starts)
+            p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
         # Mode 0 is the nominal mode: the one holding the most undisturbed probability mass.
         order = np.argsort(-(p_mode * (1 - p_dist)[:, None]).sum(0), kind="stable")
         self.p_mode_ = p_mode[:, order]
