@@ -453,7 +453,7 @@ def test_log_shorter_than_the_exclusion_window_flags_the_push_only():
     np.testing.assert_array_equal(np.flatnonzero(model.disturbed_), np.arange(160, 184))
     assert model.report_["windows_shortened_s"] == pytest.approx(
         {"exclusion_s": 0.2 * 0.0399, "block_s": 0.4 * 0.0399, "mode_smoothing_s": 0.8 * 0.0399,
-         "min_push_s": 0.03 * 0.0399, "min_mode_s": 0.8 * 0.0399})
+         "min_push_s": 0.03 * 0.0399, "min_mode_s": 0.8 * 0.0399, "push_scan_s": 0.04 * 0.0399})
 
 
 # ---------------------------------------------------------------------------------------------
