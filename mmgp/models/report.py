@@ -44,8 +44,10 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
                         "p_enter": sem.p_enter_, "p_leave": sem.p_leave_,
                         "n_disturbed": int(sem.disturbed_.sum()),
                         # log-evidence gain of the disturbance states over their BIC price;
-                        # <= 0 with abstain on: nothing flagged (a log without pushes).
+                        # <= 0 with abstain on: the chain flags nothing (a log without pushes).
                         "evidence_gain": float(getattr(sem, "disturbance_gain_", 0.0)),
+                        # samples the sustained-offset scan added (before the shortest-push rule)
+                        "n_by_scan": int(getattr(sem, "scan_flagged_", 0)),
                         "abstained": bool(sem.disturbance and getattr(sem, "abstain", False)
                                           and getattr(sem, "disturbance_gain_", 1.0) <= 0.0)},
         "deterministic": sem.estep == "mpm",
