@@ -42,9 +42,9 @@ def sustained_offset_scan(z: np.ndarray, ok: np.ndarray, window: int, z_max: flo
     z (T, n): residuals standardised by each sample's predictive standard deviation; ok (T,):
     samples the labels call undisturbed (only these are averaged, scaled and flagged); window:
     samples averaged (centred); starts: first sample of each log (windows stay inside a log).
-    Residuals are clipped at +-``CLIP_Z`` first. The running mean counts where at least half its window is ``ok``; its centre and spread per
-    joint are the median and 1.4826 x the median absolute deviation over windows that are
-    wholly ``ok``. Returns (flags (T,) bool, the largest joint's scaled deviation (T,))."""
+    Residuals are clipped at +-``CLIP_Z`` first. The running mean counts where at least half its
+    window is ``ok``; its centre and spread per joint are the median and 1.4826 x the median
+    absolute deviation over windows that are wholly ``ok``. Returns (flags (T,) bool, the largest joint's scaled deviation (T,))."""
     T = len(z)
     z = np.clip(z, -CLIP_Z, CLIP_Z)
     window = max(int(window), 1)
