@@ -100,17 +100,13 @@ class MultimodalGP(BaseEstimator):
         model error (friction at a velocity reversal, an impact) and are labelled undisturbed.
         Pushes last 0.2-3 s.
     push_scan_s : float >= 0, default 0.2
-        A push is a sustained offset: undisturbed samples of the final labels whose standardised
-        residual, averaged over this many seconds of undisturbed samples, stands more than
-        ``push_scan_z`` robust standard deviations of that average off on some joint are
-        flagged too (0: off). Finds light pushes that hold the torque 1-3 predictive standard
-        deviations off for 0.2-2 s, which no single sample shows (validation val11: pushes
-        missed 0.352 -> 0.024, val06 0.171 -> 0.015; benchmarks/README.md "A push is a
-        sustained offset").
+        A push is a sustained offset: undisturbed samples whose standardised residual, averaged
+        over this many seconds, stands more than ``push_scan_z`` robust standard deviations of
+        that average off on some joint are flagged too (0: off; docs/training.md). Validation
+        val11 (light pushes): missed 0.352 -> 0.024.
     push_scan_z : float > 0, default 6.0
-        The scan's threshold, in robust standard deviations of the averaged residual (about
-        T / window x joints windows are tested: 6 keeps a whole log's chance of one false
-        window far below 1%, Gaussian, and leaves room for heavier tails).
+        The scan's threshold (about T / window x joints windows are tested; a Gaussian would
+        need ~4.7 for a 1% chance of one false window per 100 s log at 100 Hz, 7 joints).
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).
