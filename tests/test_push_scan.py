@@ -45,7 +45,7 @@ def test_light_sustained_offset_is_found_where_no_sample_shows_it():
         planted[a:a + 60] = True
         z[a:a + 60, 1] += 1.5          # 1.5 standard deviations for 60 samples
     assert (np.abs(z[planted]).max(1) > 5).mean() < 0.05     # per sample it is noise
-    flags, stat = sustained_offset_scan(z, np.ones(T, bool), window, 6.0)
+    flags, _ = sustained_offset_scan(z, np.ones(T, bool), window, 6.0)
     assert flags[planted].mean() >= 0.5     # the middle of each (its edges average in noise)
     # Nothing away from the planted offsets (a window's half-width around them may count).
     near = np.convolve(planted, np.ones(window + 1), mode="same") > 0
@@ -84,7 +84,7 @@ def test_flagged_samples_are_left_out_and_windows_stay_inside_their_log():
     # Across a log boundary, an offset at the end of one log does not leak into the next.
     z2 = rng.normal(size=(T, 1))
     z2[1970:2000] += 3.0
-    f2, _ = sustained_offset_scan(z2, ok | True, window, 6.0, starts=(0, 2000))
+    f2, _ = sustained_offset_scan(z2, np.ones(T, bool), window, 6.0, starts=(0, 2000))
     assert f2[1975:1995].all() and not f2[2000:].any()
 
 
