@@ -236,6 +236,7 @@ class MultimodalSEM:
         # A mode's shortest stretch in samples (0: no such rule without times or with one mode).
         dt = float(np.median(np.diff(fitter.t_axis))) if fitter.t_axis is not None else math.inf
         min_mode_len = self.min_mode_s / dt if K > 1 else 0.0
+        scan_len = self.push_scan_s / dt          # the scan's window in samples (0: no scan)
         too_short = min_mode_len if self.abandon_short_modes else 0.0
         while True:
             ts = time.perf_counter()
@@ -268,7 +269,7 @@ class MultimodalSEM:
                 self.abandoned_ = True
                 break
             sweep += 1
-        self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len)
+        self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len, scan_len)
         self.n_sweeps_ = sweep
         timings["total_s"] = time.perf_counter() - t0
         self.timings_ = timings
@@ -350,7 +351,7 @@ class MultimodalSEM:
         return KMeans(n_clusters=self.n_modes, n_init=10, random_state=0).fit(smooth).labels_
 
     def _finish(self, fitter: ModeFitter, monitor: ConvergenceMonitor, params: SweepParams, starts,
-                min_push_len: float = 0.0, min_mode_len: float = 0.0) -> None:
+                min_push_len: float = 0.0, min_mode_len: float = 0.0, scan_len: float = 0.0) -> None:
         """Labels from the averaged marginals, nominal mode first, and the final GPs; flagged
         stretches shorter than ``min_push_len`` samples are unflagged (p_disturbed 0), stretches
         of one mode shorter than ``min_mode_len`` samples take a neighbouring stretch's mode."""
@@ -365,7 +366,7 @@ class MultimodalSEM:
         if self.disturbance:
             # After the shortest-push rule (its blips are model error, part of the scan's
             # reference), and the rule again on what the scan adds.
-            p_dist = self._scan_sustained(fitter, p_mode.argmax(1), p_dist, starts)
+            p_dist = self._scan_sustained(fitter, p_mode.argmax(1), p_dist, starts, scan_len)
             p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
         # Mode 0 is the nominal mode: the one holding the most undisturbed probability mass.
         order = np.argsort(-(p_mode * (1 - p_dist)[:, None]).sum(0), kind="stable")
@@ -390,12 +391,14 @@ class MultimodalSEM:
         self.log_marginal_ = monitor.trace[-1].log_marginal
         self._final_gps(fitter, order, params.hypers)
 
-    def _scan_sustained(self, fitter: ModeFitter, modes: np.ndarray, p_dist: np.ndarray, starts) -> np.ndarray:
+    def _scan_sustained(self, fitter: ModeFitter, modes: np.ndarray, p_dist: np.ndarray, starts,
+                        scan_len: float) -> np.ndarray:
         """p_dist (T,) raised to the scan's probability where :func:`.scan.sustained_offset_scan`
         finds a sustained offset among the undisturbed samples (residuals under each sample's
         mode ``modes`` (T,) as the last sweep predicted them). Its own test, also where the chain
-        abstained: it judges averages against their measured spread, not single samples."""
-        if fitter.t_axis is None or self.push_scan_s <= 0:
+        abstained: it judges averages against their measured spread, not single samples.
+        ``scan_len``: the window in samples (0 without times or with ``push_scan_s`` 0: no scan)."""
+        if scan_len <= 0:
             self.scan_flagged_ = 0
             return p_dist
         last = self.last_sweep_
@@ -403,7 +406,7 @@ class MultimodalSEM:
         mean = np.stack(last["means"])[modes, np.arange(T)]
         var = np.stack(last["vars"])[modes, np.arange(T)]
         z = (fitter.Y - mean) / np.sqrt(var)
-        window = max(int(round(self.push_scan_s / float(np.median(np.diff(fitter.t_axis))))), 1)
+        window = max(int(round(scan_len)), 1)
         flags, stat = sustained_offset_scan(z, p_dist <= 0.5, window, self.push_scan_z, starts)
         self.scan_flagged_ = int(flags.sum())
         p_scan = scan_probability(stat, T / window * z.shape[1])
