@@ -22,8 +22,9 @@ from .errors import InputError
 from .gp.hyper import Hyper
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .models.features import (build_features, load_logs, resolve_mean_basis,
+from .models.features import (basis_sign_columns, build_features, load_logs, resolve_mean_basis,
                               state_features)
+from .models.mstep import RestBand
 from .models.report import training_report
 
 MODEL_FORMAT = "mmgp-model"
@@ -35,7 +36,7 @@ _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_swe
                  "patience", "n_inducing")
 _NON_NEGATIVE = ("exclusion_s", "block_s", "min_push_s", "min_mode_s", "push_scan_s")
 _POSITIVE = ("push_s", "gap_s")
-_BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain")
+_BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain", "rest_band")
 
 
 class MultimodalGP(BaseEstimator):
@@ -107,6 +108,14 @@ class MultimodalGP(BaseEstimator):
     push_scan_z : float > 0, default 6.0
         The scan's threshold (about T / window x joints windows are tested; a Gaussian would
         need ~4.7 for a 1% chance of one false window per 100 s log at 100 Hz, 7 joints).
+    rest_band : bool, default False
+        Dry friction as physics: per-joint Coulomb (smooth sign) and viscous columns join the
+        mean basis (needs a robot and ``friction_feature``), and a joint at rest may be stuck
+        and hold any torque within its friction band, which the model reads off its own two
+        sliding branches: there the undisturbed density is uniform over the band, samples
+        stuck in it do not train the GP, and the scan does not average them
+        (docs/training.md, "A stuck joint holds any torque in its friction band"). Off by
+        default until the validation logs have been re-run with it.
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).
@@ -180,7 +189,7 @@ class MultimodalGP(BaseEstimator):
                  friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
                  gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
                  tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, min_push_s=0.15,
-                 push_scan_s=0.2, push_scan_z=6.0, abstain=True,
+                 push_scan_s=0.2, push_scan_z=6.0, rest_band=False, abstain=True,
                  average_last=5, mode_smoothing_s=4.0, min_mode_s=4.0, calibrate=True, objective="loo", ard=True,
                  device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
@@ -299,7 +308,8 @@ class MultimodalGP(BaseEstimator):
                     fit_points=self.fit_points, fit_iter=self.fit_iter,
                     exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
                     min_mode_s=self.min_mode_s,
-                    calibrate=self.calibrate, shared_basis=basis_kind == "payload", seed=self.seed,
+                    calibrate=self.calibrate, shared_basis=(basis_kind or "").startswith("payload"),
+                    rest_band=self.rest_band, seed=self.seed,
                     progress=self.progress,
                     gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device})
 
@@ -337,7 +347,7 @@ class MultimodalGP(BaseEstimator):
         semi = self.semiparametric if robot is not None else "none"
         fscale = (smooth_sign_scale(np.concatenate([lg.dq for lg in logs_]))
                   if self.friction_feature else None)
-        basis_kind = resolve_mean_basis(self.mean_basis, robot, semi)
+        basis_kind = resolve_mean_basis(self.mean_basis, robot, semi, friction=self.rest_band and fscale is not None)
         feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:
@@ -348,7 +358,7 @@ class MultimodalGP(BaseEstimator):
                                          min_push_s=self.min_push_s, min_mode_s=self.min_mode_s,
                                          push_scan_s=self.push_scan_s)
         kw.update(shortened)
-        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis)
+        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis, rest=self._rest_band(feats, basis_kind, fscale))
         if self.n_modes == "auto":
             sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
         else:
@@ -367,6 +377,15 @@ class MultimodalGP(BaseEstimator):
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
         self.report_["windows_shortened_s"] = shortened
         return self
+
+    def _rest_band(self, feats, basis_kind, fscale):
+        """The SEM's :class:`RestBand` (None without ``rest_band`` or the friction input)."""
+        if not self.rest_band or fscale is None:
+            return None
+        n = feats.Y.shape[1]
+        p = 0 if feats.basis is None else feats.basis.shape[2]
+        # the smooth-sign columns follow q, dq, ddq (models.features.state_features)
+        return RestBand(feats.rest, list(range(3 * n, 4 * n)), basis_sign_columns(basis_kind, p, n))
 
     def _set_sem(self, sem) -> None:
         self.sem_ = sem

@@ -11,6 +11,7 @@ import numpy as np
 from ..data.differentiation import SavitzkyGolay, complete_derivatives, downsample
 from ..data.logs import RobotLog, read_log
 from ..errors import InputError
+from ..physics.context import rest_weight, smooth_sign_scale
 
 
 def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_window_s: float | None = None,
@@ -49,16 +50,20 @@ class Features:
     starts: list[int]
     t: np.ndarray | None = None
     basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
+    rest: np.ndarray | None = None    # (T, n) in [0, 1]: how much each joint is at rest (may be stuck)
 
 
-def resolve_mean_basis(kind: str, robot, semiparametric: str) -> str | None:
-    """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis)."""
+def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> str | None:
+    """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis), with
+    "+friction" appended when ``friction`` (per-joint Coulomb and viscous columns join it)."""
     rbd_ok = robot is not None and semiparametric == "residual"
     if kind == "auto":
-        return "payload" if rbd_ok else None
+        kind = "payload" if rbd_ok else "none"
     if kind in ("rbd", "payload") and not rbd_ok:
         raise InputError(f"mean_basis '{kind}' needs a robot model and semiparametric 'residual'")
-    return None if kind == "none" else kind
+    if kind == "none":
+        return None
+    return kind + "+friction" if friction else kind
 
 
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
@@ -71,6 +76,7 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
     f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
     f.t = np.concatenate([lg.t for lg in logs])
+    f.rest = rest_weight(dq, smooth_sign_scale(dq) if friction_scale is None else friction_scale)
     return f
 
 
@@ -93,11 +99,35 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
             X = np.concatenate([X, tau_rbd], axis=1)
     Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
     basis = None
-    if basis_kind == "rbd":
+    kind, _, extra = (basis_kind or "").partition("+")
+    if kind == "rbd":
         basis = robot.regressor(q, dq, ddq)
-    elif basis_kind == "payload":
+    elif kind == "payload":
         basis = robot.regressor(q, dq, ddq)[..., -10:]     # the distal body's inertial parameters
+    if basis is not None and extra == "friction":
+        if friction_scale is None:
+            raise ValueError("a '+friction' mean basis needs the friction input (friction_scale)")
+        # Coulomb (smooth sign) and viscous terms per joint, last: friction as physics in the
+        # mean, so a sliding branch seen once is still predicted (MultimodalGP rest_band).
+        sign = np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
+        basis = np.concatenate([basis, friction_columns(sign), friction_columns(dq)], axis=2)
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
+
+
+def basis_sign_columns(basis_kind: str | None, p: int, n: int) -> list[int] | None:
+    """Indices of the Coulomb (smooth-sign) columns, joint by joint, in a basis of ``p`` columns
+    for ``n`` joints of kind ``basis_kind``; None without friction columns."""
+    if not (basis_kind or "").endswith("+friction"):
+        return None
+    return list(range(p - 2 * n, p - n))
+
+
+def friction_columns(v: np.ndarray) -> np.ndarray:
+    """(T, n, n) regressor columns of a per-joint term: column j holds v[:, j] in joint j's row."""
+    T, n = v.shape
+    out = np.zeros((T, n, n))
+    out[:, np.arange(n), np.arange(n)] = v
+    return out
 
 
 def input_names(n: int, with_rbd: bool, with_friction: bool) -> list[str]:

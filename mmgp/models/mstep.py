@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.special import logsumexp
+from scipy.special import log_ndtr, logsumexp
 
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
@@ -45,6 +45,7 @@ class SweepParams:
     sigma_d: np.ndarray
     calib: np.ndarray
     sigma_floor: np.ndarray | None = None   # (n,) Sigma_d's floor, N^2*m^2 (None before the first)
+    stuck: list | None = None               # K (T,) bool: samples where a joint may be stuck (kept out of the GP)
 
 
 @dataclass
@@ -82,11 +83,26 @@ class PushPrior:
 
 @dataclass
 class Emissions:
-    """Per-mode means and calibrated variances (K arrays (T, n)) and log-likelihoods (T, S)."""
+    """Per-mode means and calibrated predictive variances (K arrays (T, n)), log-likelihoods
+    (T, S), and per mode the friction band's half-width (K arrays (T, n), N*m, 0 where no joint
+    rests; None without rest weights, see :meth:`ModeFitter.friction_band`)."""
 
     means: list
     vars: list
     loglik: np.ndarray
+    bands: list | None = None
+
+
+@dataclass
+class RestBand:
+    """Where joints may be stuck and how to read their friction band (MultimodalSEM ``rest_band``):
+    ``weight`` (T, n) rest weights in [0, 1] (:func:`mmgp.physics.context.rest_weight`),
+    ``sign_cols`` (n,) the columns of X holding each joint's smooth velocity sign,
+    ``basis_sign_cols`` (n,) the basis's Coulomb columns (None: the basis has none)."""
+
+    weight: np.ndarray
+    sign_cols: Sequence[int]
+    basis_sign_cols: Sequence[int] | None = None
 
 
 class ModeFitter:
@@ -96,14 +112,19 @@ class ModeFitter:
     ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
     ``gp_method``, ``n_inducing``; a :class:`~mmgp.models.sem.MultimodalSEM`);
     ``t_axis`` (T,) one increasing time axis over all logs (enables the leave-window-out
-    likelihood); ``basis`` (T, n, p) optional regressors of a robust linear mean under the GP.
+    likelihood); ``basis`` (T, n, p) optional regressors of a robust linear mean under the GP;
+    ``band`` an optional :class:`RestBand`: a joint at rest may then hold any torque within its
+    friction band (:meth:`friction_band`); ``rest`` is its weights (T, n) or None.
     Subsets (GP support, hyperparameter fitting points) are evenly spaced, and the GPs' own
     fitting subsets use seed 0: the seed plays no part in the fitted models.
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, settings, *, t_axis: np.ndarray | None = None,
-                 basis: np.ndarray | None = None):
+                 basis: np.ndarray | None = None, band: RestBand | None = None):
         self.X, self.Y, self.settings, self.t_axis, self.basis = X, Y, settings, t_axis, basis
+        self.rest = None if band is None else band.weight
+        self.sign_cols = None if band is None else list(band.sign_cols)
+        self.basis_sign_cols = None if band is None or basis is None else band.basis_sign_cols
 
     def new_gp(self) -> ExactGP:
         s = self.settings
@@ -141,6 +162,45 @@ class ModeFitter:
             mean, var, gp, support = self._gp_predictive(self.Y - offset, members, hyper, optimise)
             return mean + offset, var, gp, support, coef
         return (*self._gp_predictive(self.Y, members, hyper, optimise), None)
+
+    def friction_band(self, gp, coef: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Centre and half-width (T, n), N*m, of the torque band a joint at rest may hold, and
+        the branches' predictive variance (T, n), N^2*m^2, that blurs its edges.
+
+        A joint stuck by dry friction holds whatever torque within +-(its friction) balances the
+        rest, so its torque is not a function of the state. The model itself learnt that friction
+        on the sliding branches: at each resting sample (rest weight > 0.01) the GP is evaluated
+        with the joint's velocity sign set to +1 and to -1; half their difference is the band's
+        half-width, their mean its centre (plus the basis mean), their mean variance (incl.
+        noise) the blur: the branches are where the model has data, while the sample's own
+        state (sign near 0) may have none. Elsewhere: centre 0, width 0, variance 1.
+        """
+        T, n = self.Y.shape
+        centre, half, bvar = np.zeros((T, n)), np.zeros((T, n)), np.ones((T, n))
+        for j in range(n):
+            idx = np.flatnonzero(self.rest[:, j] > 0.01)
+            if not len(idx):
+                continue
+            branch, bv = [], []
+            for sign in (1.0, -1.0):
+                Xs = self.X[idx].copy()
+                Xs[:, self.sign_cols[j]] = sign
+                mean, std = gp.predict(Xs, include_noise=True)
+                branch.append(np.asarray(mean).reshape(len(idx), -1)[:, j])
+                bv.append(np.asarray(std).reshape(len(idx), -1)[:, j] ** 2)
+            centre[idx, j] = 0.5 * (branch[0] + branch[1])
+            half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
+            bvar[idx, j] = 0.5 * (bv[0] + bv[1])
+            if coef is not None:
+                fp, fm = self.basis[idx, j] @ coef[j], self.basis[idx, j] @ coef[j]
+                if self.basis_sign_cols is not None:
+                    # the basis's own Coulomb column, on each branch
+                    col, c = self.basis_sign_cols[j], coef[j, self.basis_sign_cols[j]]
+                    fp = fp + c * (1.0 - self.basis[idx, j, col])
+                    fm = fm + c * (-1.0 - self.basis[idx, j, col])
+                centre[idx, j] += 0.5 * (fp + fm)
+                half[idx, j] = 0.5 * np.abs(branch[0] + fp - branch[1] - fm)
+        return centre, half, bvar
 
     def _gp_predictive(self, Y, members, hyper, optimise):
         X, s = self.X, self.settings
@@ -194,25 +254,34 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
     loglik = np.empty((T, S))
     mode_of = states % K
     dist = states >= K if disturbance else np.zeros(T, bool)
-    mus, vars_ = [], []
+    mus, vars_, bands = [], [], []
     for k in range(K):
         members = np.flatnonzero((mode_of == k) & ~dist)
+        if params.stuck is not None and (~params.stuck[k][members]).sum() >= 0.25 * len(members):
+            # A stuck joint's torque is no function of the state: the GP learns from the rest.
+            members = members[~params.stuck[k][members]]
         if len(members) < max(5, n):
             # An emptied mode is re-seeded from samples spread over the log so K stays K.
             members = evenly_spaced(np.arange(T), max(5, n))
-        mean, var, gp, _, _ = fitter.predictive(members, params.hypers[k], optimise)
+        mean, var, gp, _, coef = fitter.predictive(members, params.hypers[k], optimise)
         params.hypers[k] = gp.hyper_
         var = var * params.calib[k]
         mus.append(mean)
         vars_.append(var)
         lu = _gauss_logpdf(Y, mean, var)      # (T, n) per joint, untouched
+        if fitter.rest is not None:
+            centre, half, bvar = fitter.friction_band(gp, coef)
+            bands.append(half)
+            lu = at_rest_logpdf(lu, Y - centre, half, bvar * params.calib[k], fitter.rest)
+    if fitter.rest is not None:
+        params.stuck = [stuck_samples(fitter.rest, half, var) for half, var in zip(bands, vars_)]
         loglik[:, k] = lu.sum(1)
         if disturbance:
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
             # loaded joint from the scale mixture (pushed_logpdf).
             lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
             loglik[:, K + k] = push_loglik(lu, lp)
-    return Emissions(mus, vars_, loglik)
+    return Emissions(mus, vars_, loglik, bands if fitter.rest is not None else None)
 
 
 # Scales of Sigma_d in the pushed component of a multi-joint log (see :func:`pushed_logpdf`).
@@ -254,28 +323,59 @@ def push_loglik(lu: np.ndarray, lp: np.ndarray) -> np.ndarray:
     return logsumexp(link_components(lu, lp), 1) - np.log(n)
 
 
+def stuck_samples(rest: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """(T,) samples where some joint rests (weight > 0.5) with a friction band wider than its
+    predictive spread (half-width^2 > variance): its torque there may be anything in the band."""
+    return ((rest > 0.5) & (half ** 2 > var)).any(1)
+
+
+def band_logpdf(e: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """log density of e = u + noise, u uniform on [-half, half], noise N(0, var) (all (T, n)):
+    log([Phi((e + half) / s) - Phi((e - half) / s)] / (2 half)), s = sqrt(var); the Gaussian
+    where the band is narrower than 1e-3 s. Computed on the tail side for accuracy."""
+    s = np.sqrt(var)
+    h = np.maximum(half, 1e-3 * s)
+    a, b = (e + h) / s, (e - h) / s
+    right = b > 0                      # both in the right tail: Phi(a) - Phi(b) = Phi(-b) - Phi(-a)
+    hi, lo = np.where(right, -b, a), np.where(right, -a, b)
+    la, lb = log_ndtr(hi), log_ndtr(lo)
+    band = la + np.log1p(-np.exp(np.minimum(lb - la, -1e-300))) - np.log(2.0 * h)
+    return np.where(half < 1e-3 * s, _gauss_logpdf(e, 0.0, var), band)
+
+
+def at_rest_logpdf(lu: np.ndarray, e: np.ndarray, half: np.ndarray, var: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """Undisturbed log density (T, n) where joints may rest: with weight ``rest`` the torque lies
+    in the friction band (offset ``e`` from its centre, ``half`` its half-width:
+    :func:`band_logpdf`), otherwise it is the model's Gaussian (log density ``lu``)."""
+    w = np.clip(rest, 1e-300, 1.0)
+    return np.logaddexp(np.log1p(-np.minimum(w, 1.0 - 1e-16)) + lu, np.log(w) + band_logpdf(e, half, var))
+
+
 def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: SweepParams, *,
                       n_modes: int, disturbance: bool, calibrate: bool, learn_stay: bool,
-                      starts: Sequence[int], prior: PushPrior) -> None:
-    """The M-step after the E-step, in place on ``params``: calibration, Sigma_d (at least
-    ``prior.floor_z`` squared times the median predictive variance), transitions (Beta priors:
-    p_enter and p_leave from ``prior``, stay mean 0.95)."""
+                      starts: Sequence[int], prior: PushPrior, rest: np.ndarray | None = None) -> None:
+    """The M-step after the E-step, in place on ``params``: calibration (resting samples, by the
+    rest weights ``rest`` (T, n), weigh less), Sigma_d (at least ``prior.floor_z`` squared times
+    the median predictive variance), transitions (Beta priors: p_enter and p_leave from
+    ``prior``, stay mean 0.95)."""
     T = len(Y)
     K = n_modes
     mode_of = states % K
     dist = states >= K if disturbance else np.zeros(T, bool)
     if calibrate:
         # Out-of-window predictions in states the log visits once are overconfident; a
-        # per-mode, per-joint variance scale fitted on the undisturbed samples (mean
-        # squared z-score, never below 1) keeps them from being taken for pushes.
+        # per-mode, per-joint variance scale fitted on the undisturbed samples (never below 1)
+        # keeps them from being taken for pushes.
         for k in range(K):
             sel = (mode_of == k) & ~dist
             if sel.sum() >= 10:
                 z2 = ((Y - em.means[k]) ** 2 / (em.vars[k] / params.calib[k]))[sel]
-                # The mean, not a robust median/0.455: on the Panda both gave recall ~0.59,
-                # and the median let the replica's once-visited states through (worst
-                # unperturbed-correct 0.915 vs 0.954).
-                params.calib[k] = np.clip(z2.mean(0), 1.0, 1e4)
+                # The mean, not a robust median/0.455: on the Panda both gave recall ~0.59, and
+                # the median let the replica's once-visited states through (worst
+                # unperturbed-correct 0.915 vs 0.954). Resting samples weigh by how much they
+                # move: their spread is the friction band's, not the model's.
+                w = np.ones_like(z2) if rest is None else 1.0 - rest[sel]
+                params.calib[k] = np.clip((w * z2).sum(0) / np.maximum(w.sum(0), 1e-9), 1.0, 1e4)
     if disturbance:
         mu_s = np.stack(em.means)[mode_of, np.arange(T)]
         var_s = np.stack(em.vars)[mode_of, np.arange(T)]

@@ -76,8 +76,8 @@ def _check_meta(meta: dict, path: Path) -> None:
     if kinds is not None and (not isinstance(kinds, list) or len(kinds) != K
                               or not all(k in ("exact", "sgpr", "subset") for k in kinds)):
         raise bad("gp_kinds", f"a list of {K} of 'exact', 'sgpr', 'subset'")
-    if meta.get("mean_basis") not in (None, "payload", "rbd"):
-        raise bad("mean_basis", "'payload', 'rbd' or null")
+    if meta.get("mean_basis") not in (None, "payload", "rbd", "payload+friction", "rbd+friction"):
+        raise bad("mean_basis", "'payload', 'rbd' (optionally '+friction') or null")
 
 
 def _robot_spec_ok(spec) -> bool:

@@ -25,12 +25,13 @@ CLIP_Z = 3.0
 
 def masked_moving_average(z: np.ndarray, ok: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     """Centred running mean over ``window`` samples of ``z`` (T, n) using only samples with ``ok``
-    (T,) True; returns the means (T, n) (0 where no sample counts) and the fraction of each
-    window that counted (T,). Samples outside the array count as absent."""
-    ok_f = ok.astype(np.float64)
-    num = uniform_filter1d(np.where(ok[:, None], z, 0.0), window, axis=0, mode="constant")
-    frac = uniform_filter1d(ok_f, window, mode="constant")
-    mean = np.where(frac[:, None] > 0, num / np.maximum(frac, 1e-12)[:, None], 0.0)
+    (T,) or (T, n) True; returns the means (T, n) (0 where no sample counts) and the fraction of
+    each window that counted ((T,) or (T, n), as ``ok``). Samples outside the array count as absent."""
+    ok2 = ok[:, None] if ok.ndim == 1 else ok
+    num = uniform_filter1d(np.where(ok2, z, 0.0), window, axis=0, mode="constant")
+    frac = uniform_filter1d(ok.astype(np.float64), window, axis=0, mode="constant")
+    frac2 = frac[:, None] if ok.ndim == 1 else frac
+    mean = np.where(frac2 > 0, num / np.maximum(frac2, 1e-12), 0.0)
     return mean, frac
 
 
@@ -39,29 +40,32 @@ def sustained_offset_scan(z: np.ndarray, ok: np.ndarray, window: int, z_max: flo
     """Samples whose running-mean residual stands more than ``z_max`` robust standard deviations
     off on some joint.
 
-    z (T, n): residuals standardised by each sample's predictive standard deviation; ok (T,):
-    samples the labels call undisturbed (only these are averaged, scaled and flagged); window:
+    z (T, n): residuals standardised by each sample's predictive standard deviation; ok (T,) or
+    (T, n): samples the labels call undisturbed, per joint where some joint's samples do not
+    count (only these are averaged, scaled and flagged); window:
     samples averaged (centred); starts: first sample of each log (windows stay inside a log).
     Residuals are clipped at +-``CLIP_Z`` first. The running mean counts where at least half its
     window is ``ok``; its centre and spread per joint are the median and 1.4826 x the median
     absolute deviation over windows that are wholly ``ok``. Returns (flags (T,) bool, the largest joint's scaled deviation (T,))."""
-    T = len(z)
+    T, n = z.shape
+    ok = np.broadcast_to(ok[:, None] if ok.ndim == 1 else ok, (T, n))
     z = np.clip(z, -CLIP_Z, CLIP_Z)
     window = max(int(window), 1)
     avg = np.zeros_like(z)
-    frac = np.zeros(T)
+    frac = np.zeros((T, n))
     bounds = sorted(set(int(s) for s in starts) | {0}) + [T]
     for a, b in zip(bounds[:-1], bounds[1:]):
         avg[a:b], frac[a:b] = masked_moving_average(z[a:b], ok[a:b], window)
     ref = ok & (frac > 1.0 - 1e-9)
-    stat = np.zeros(T)
-    if ref.sum() < 10 * window:
-        return np.zeros(T, bool), stat
-    centre = np.median(avg[ref], 0)
-    spread = 1.4826 * np.median(np.abs(avg[ref] - centre), 0)
-    stat = (np.abs(avg - centre) / np.maximum(spread, 1e-12)).max(1)
-    stat = np.where(frac >= 0.5, stat, 0.0)
-    return ok & (stat > z_max), stat
+    dev = np.zeros((T, n))
+    for j in range(n):
+        if ref[:, j].sum() < 10 * window:
+            continue        # too few reference windows on this joint: it cannot be judged
+        centre = np.median(avg[ref[:, j], j])
+        spread = 1.4826 * np.median(np.abs(avg[ref[:, j], j] - centre))
+        dev[:, j] = np.where(ok[:, j] & (frac[:, j] >= 0.5), np.abs(avg[:, j] - centre) / max(spread, 1e-12), 0.0)
+    stat = dev.max(1)
+    return stat > z_max, stat
 
 
 def scan_probability(stat: np.ndarray, n_tests: float) -> np.ndarray:

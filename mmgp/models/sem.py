@@ -63,7 +63,8 @@ from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import chain_matrix, e_step, longest_runs_s, merge_short_runs, runs_shorter_than
 from .hmm import forward_backward
-from .mstep import ModeFitter, PushPrior, SweepParams, evenly_spaced, mode_emissions, update_parameters
+from .mstep import (ModeFitter, PushPrior, RestBand, SweepParams, evenly_spaced, mode_emissions,
+                    update_parameters)
 from .robust import basis_rank
 from .scan import scan_probability, sustained_offset_scan
 
@@ -123,6 +124,13 @@ class MultimodalSEM:
         undisturbed samples) stands more than ``push_scan_z`` robust standard deviations of that
         average off on some joint are flagged too (:mod:`.scan`; needs ``t``; 0 s: off). Light
         pushes 1-3 predictive standard deviations off for 0.2-2 s, which no single sample shows.
+    rest_band : with ``rest`` in ``fit`` (a :class:`.mstep.RestBand`), a joint at rest may be
+        stuck and hold any torque within its friction band: its undisturbed density is, with weight ``rest[t, j]``, uniform over the band (the
+        model's own friction, :meth:`.mstep.ModeFitter.friction_band`) blurred by the
+        predictive spread (:func:`.mstep.at_rest_logpdf`); the scan does not average where the
+        band is wider than that spread. On the issue-10 tuning levers stuck holds and velocity
+        reversals were the false alarms (docs/training.md, "A stuck joint holds any torque in
+        its friction band").
     start_trim : fractions of the samples kept by the successive refits of the start.
     start_z : robust z-score over which a sample starts disturbed.
     abstain : flag nothing when the disturbance states do not pay their BIC price.
@@ -140,7 +148,7 @@ class MultimodalSEM:
                  calibrate: bool = True, shared_basis: bool = False, push_s: float = 1.0, gap_s: float = 5.0,
                  push_prior_n: float = 3.0, push_floor_z: float = 5.0, min_push_s: float = 0.15,
                  push_scan_s: float = 0.2, push_scan_z: float = 6.0,
-                 start_trim: Sequence[float] = (0.8, 0.6),
+                 rest_band: bool = True, start_trim: Sequence[float] = (0.8, 0.6),
                  start_z: float = 3.0, abstain: bool = True, gp_kwargs: dict | None = None, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None):
         if n_modes < 1:
@@ -155,11 +163,13 @@ class MultimodalSEM:
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
             init_states: np.ndarray | None = None, basis: np.ndarray | None = None,
-            sweeps: bool | None = None) -> "MultimodalSEM":
+            rest: RestBand | None = None, sweeps: bool | None = None) -> "MultimodalSEM":
         """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
         (T, n, p): optional per-output linear regressors (e.g. the rigid-body inertial-parameter
         regressor); each mode then has the mean ``basis @ coef_[k]`` (coef (n, p)) under its GP.
+        ``rest``: where joints rest and where their velocity signs are (a
+        :class:`.mstep.RestBand`), for the friction band at rest (``rest_band``); None: no band.
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
@@ -182,7 +192,7 @@ class MultimodalSEM:
             return self._fit_single(X, Y, t=t, starts=starts, basis=basis)
         # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
         with limit_threads(1):
-            return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis)
+            return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis, rest=rest)
 
     def _fit_single(self, X, Y, *, t, starts, basis=None) -> "MultimodalSEM":
         """One GP on every sample, by :func:`mmgp.gp.sparse.make_gp`, hyperparameters by its own
@@ -195,6 +205,7 @@ class MultimodalSEM:
         self.p_disturbed_ = np.zeros(T)
         self.disturbed_ = np.zeros(T, bool)
         self.sigma_d_ = np.zeros(n)
+        self.friction_band_ = np.zeros((1, n))
         self.stay_prob_ = 1.0
         self.p_enter_ = self.p_leave_ = 0.0
         self.trace_, self.converged_, self.n_sweeps_, self.last_sweep_ = [], True, 0, None
@@ -207,9 +218,9 @@ class MultimodalSEM:
         self.timings_ = {"init_s": 0.0, "gp_s": total, "estep_s": 0.0, "total_s": total}
         return self
 
-    def _fit(self, X, Y, *, t, starts, init_states, basis=None) -> "MultimodalSEM":
+    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None) -> "MultimodalSEM":
         t0 = time.perf_counter()
-        fitter, starts = self._prepare(X, Y, t, starts, basis)
+        fitter, starts = self._prepare(X, Y, t, starts, basis, rest)
         T, n = fitter.Y.shape
         K = self.n_modes
         S = 2 * K if self.disturbance else K
@@ -251,11 +262,11 @@ class MultimodalSEM:
             states = step.states
             update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=self.disturbance,
                               calibrate=self.calibrate, learn_stay=self.stay_prob is None, starts=starts,
-                              prior=prior)
+                              prior=prior, rest=fitter.rest)
             # Kept for diagnostics (what the last sweep saw); references, no copies.
-            self.last_sweep_ = {"means": em.means, "vars": em.vars, "loglik": em.loglik,
-                                "calib": params.calib.copy(), "sigma_d": np.array(params.sigma_d),
-                                "states": states}
+            self.last_sweep_ = {"means": em.means, "vars": em.vars, "bands": em.bands,
+                                "loglik": em.loglik, "calib": params.calib.copy(),
+                                "sigma_d": np.array(params.sigma_d), "states": states}
             n_dist = int((states >= K).sum()) if self.disturbance else 0
             rec = SweepRecord(sweep, step.log_joint, step.log_marginal, changed, n_dist,
                               np.bincount(states % K, minlength=K).tolist(), time.perf_counter() - ts)
@@ -275,7 +286,7 @@ class MultimodalSEM:
         self.timings_ = timings
         return self
 
-    def _prepare(self, X, Y, t, starts, basis) -> tuple[ModeFitter, list[int]]:
+    def _prepare(self, X, Y, t, starts, basis, rest=None) -> tuple[ModeFitter, list[int]]:
         """Checked float64 arrays, the joined time axis and the basis rank, as a ModeFitter."""
         X = np.asarray(X, dtype=np.float64)
         Y = np.asarray(Y, dtype=np.float64)
@@ -301,7 +312,12 @@ class MultimodalSEM:
                 offset = axis[b - 1] + 10.0 * max(self.exclusion_s, 1.0)
         if T < 5 * self.n_modes:
             raise ValueError(f"{T} samples are too few for {self.n_modes} modes")
-        return ModeFitter(X, Y, self, t_axis=axis, basis=basis), starts
+        if rest is not None and self.rest_band:
+            if np.shape(rest.weight) != (T, n) or len(rest.sign_cols) != n:
+                raise ValueError(f"rest weights must be (T, n) = ({T}, {n}) with n sign columns")
+        else:
+            rest = None
+        return ModeFitter(X, Y, self, t_axis=axis, basis=basis, band=rest), starts
 
     def _initial_states(self, fitter: ModeFitter) -> tuple[np.ndarray, object]:
         """Start without labels (deterministic): one GP on everything, refitted (with the
@@ -383,13 +399,18 @@ class MultimodalSEM:
             self.labels_ = lasting
         self.disturbed_ = self.p_disturbed_ > 0.5
         self.sigma_d_ = params.sigma_d if self.disturbance else np.zeros(n)
+        bands = self.last_sweep_["bands"]
+        # the median band half-width over each mode's resting samples (weight > 0.5), N*m
+        self.friction_band_ = np.zeros((K, n)) if bands is None else np.array(
+            [[np.median(bands[k][fitter.rest[:, j] > 0.5, j]) if (fitter.rest[:, j] > 0.5).any() else 0.0
+              for j in range(n)] for k in order])
         self.stay_prob_ = float(params.stay)
         self.p_enter_ = float(params.p_enter) if self.disturbance else 0.0
         self.p_leave_ = float(params.p_leave) if self.disturbance else 0.0
         self.trace_ = monitor.trace
         self.converged_ = monitor.converged
         self.log_marginal_ = monitor.trace[-1].log_marginal
-        self._final_gps(fitter, order, params.hypers)
+        self._final_gps(fitter, order, params.hypers, params.stuck)
 
     def _scan_sustained(self, fitter: ModeFitter, modes: np.ndarray, p_dist: np.ndarray, starts,
                         scan_len: float) -> np.ndarray:
@@ -406,8 +427,14 @@ class MultimodalSEM:
         mean = np.stack(last["means"])[modes, np.arange(T)]
         var = np.stack(last["vars"])[modes, np.arange(T)]
         z = (fitter.Y - mean) / np.sqrt(var)
+        ok = np.repeat((p_dist <= 0.5)[:, None], z.shape[1], 1)
+        if last["bands"] is not None:
+            # Where a joint may be stuck, its held torque is an offset that lasts as long as
+            # the hold: not evidence of a push unless it leaves the band (the chain's test).
+            half = np.stack(last["bands"])[modes, np.arange(T)]
+            ok &= fitter.rest * half ** 2 <= var
         window = max(int(round(scan_len)), 1)
-        flags, stat = sustained_offset_scan(z, p_dist <= 0.5, window, self.push_scan_z, starts)
+        flags, stat = sustained_offset_scan(z, ok, window, self.push_scan_z, starts)
         self.scan_flagged_ = int(flags.sum())
         p_scan = scan_probability(stat, T / window * z.shape[1])
         return np.where(flags, np.maximum(p_dist, p_scan), p_dist)
@@ -428,7 +455,7 @@ class MultimodalSEM:
         modes_only = forward_backward(loglik[:, :K], A_modes, np.full(K, 1.0 / K), starts)[2]
         return float(full - modes_only - 0.5 * math.log(T) * (2 + n))
 
-    def _final_gps(self, fitter: ModeFitter, order, hypers) -> None:
+    def _final_gps(self, fitter: ModeFitter, order, hypers, stuck=None) -> None:
         # Final GPs conditioned on the final labels, hyperparameters kept from the last refit.
         # support_Y_ holds the GP's targets: torques minus the basis part when there is one.
         X, Y = fitter.X, fitter.Y
@@ -436,6 +463,8 @@ class MultimodalSEM:
         self.gps_, self.support_X_, self.support_Y_, self.coef_ = [], [], [], []
         for i, k in enumerate(order):
             members = np.flatnonzero((self.labels_ == i) & ~self.disturbed_)
+            if stuck is not None and (~stuck[k][members]).sum() >= 0.25 * len(members):
+                members = members[~stuck[k][members]]      # as in the sweeps (mstep.mode_emissions)
             if len(members) < max(5, n):
                 members = np.flatnonzero(self.labels_ == i)
             if len(members) < max(5, n):
@@ -472,7 +501,7 @@ class MultimodalSEM:
         return self.n_modes * per_mode + (self.n_modes > 1) + (2 + n if self.disturbance else 0)
 
 
-def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None,
+def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None, rest=None,
                    **kw) -> tuple[MultimodalSEM, dict]:
     """Choose K: the candidates are tried in increasing order; K is kept while it raises a
     BIC-style score on the chain's log marginal likelihood of the final sweep (itself built from
@@ -492,7 +521,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     best = None
     for K in sorted(candidates):
         m = MultimodalSEM(n_modes=K, abandon_short_modes=K > 1, **kw).fit(X, Y, t=t, starts=starts, basis=basis,
-                                                                          sweeps=True)
+                                                                          rest=rest, sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         longest[K] = m.longest_stretch_s_.round(3).tolist()
         models[K] = m

@@ -43,6 +43,20 @@ def reach_of(model) -> float | None:
     return reach if reach > 0 else None
 
 
+def rest_weight(dq: np.ndarray, v_s: np.ndarray) -> np.ndarray:
+    """How much each joint is at rest at each sample, in [0, 1]: ``exp(-(dq / v_s)^2 / 2)`` (T, n)
+    for velocities ``dq`` (T, n) rad/s and the smooth-sign scale ``v_s`` (n,) rad/s
+    (:func:`smooth_sign_scale`). 1 at zero velocity, 0.61 at ``v_s``, below 0.01 beyond 3 ``v_s``.
+
+    Why: a joint with dry friction that is at rest may be stuck, and static friction then takes
+    whatever value in its band balances the other torques (set by the controller's history, not
+    by q, dq, ddq). Training widens the undisturbed spread there (its rest slack); the diagnosis
+    leaves such samples out of its fits (:func:`mmgp.diagnosis.separation.valid_mask`).
+    """
+    dq = np.asarray(dq, dtype=np.float64)
+    return np.exp(-0.5 * (dq / np.maximum(np.asarray(v_s, dtype=np.float64), 1e-12)) ** 2)
+
+
 def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.05,
                       floor_frac: float = 0.01) -> np.ndarray:
     """Velocity scale ``v_s`` (n,) of the smooth sign ``tanh(dq / v_s)``, in rad/s: the one rule of
