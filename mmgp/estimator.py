@@ -220,6 +220,7 @@ class MultimodalGP(BaseEstimator):
         self.min_push_s = min_push_s
         self.push_scan_s = push_scan_s
         self.push_scan_z = push_scan_z
+        self.rest_band = rest_band
         self.abstain = abstain
         self.average_last = average_last
         self.mode_smoothing_s = mode_smoothing_s
