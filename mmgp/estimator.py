@@ -22,9 +22,7 @@ from .errors import InputError
 from .gp.hyper import Hyper
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .models.features import (basis_sign_columns, build_features, load_logs, resolve_mean_basis,
-                              state_features)
-from .models.mstep import RestBand
+from .models.features import build_features, load_logs, resolve_mean_basis, state_features
 from .models.report import training_report
 
 MODEL_FORMAT = "mmgp-model"
@@ -103,19 +101,12 @@ class MultimodalGP(BaseEstimator):
     push_scan_s : float >= 0, default 0.2
         A push is a sustained offset: undisturbed samples whose standardised residual, averaged
         over this many seconds, stands more than ``push_scan_z`` robust standard deviations of
-        that average off on some joint are flagged too (0: off; docs/training.md). Validation
-        val11 (light pushes): missed 0.352 -> 0.024.
+        that average off on some joint are flagged too (0: off; docs/training.md).
     push_scan_z : float > 0, default 6.0
         The scan's threshold (about T / window x joints windows are tested; a Gaussian would
         need ~4.7 for a 1% chance of one false window per 100 s log at 100 Hz, 7 joints).
     rest_band : bool, default False
-        Dry friction as physics: per-joint Coulomb (smooth sign) and viscous columns join the
-        mean basis (needs a robot and ``friction_feature``), and a joint at rest may be stuck
-        and hold any torque within its friction band, which the model reads off its own two
-        sliding branches: there the undisturbed density is uniform over the band, samples
-        stuck in it do not train the GP, and the scan does not average them
-        (docs/training.md, "A stuck joint holds any torque in its friction band"). Off by
-        default until the validation logs have been re-run with it.
+        Dry friction as physics: Coulomb/viscous terms in the mean; a resting joint may hold any torque in its band (docs/training.md).
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).
@@ -306,12 +297,10 @@ class MultimodalGP(BaseEstimator):
                     gap_s=self.gap_s, push_floor_z=self.push_floor_z, min_push_s=self.min_push_s, abstain=self.abstain,
                     push_scan_s=self.push_scan_s, push_scan_z=self.push_scan_z, max_support=self.max_support,
                     final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
-                    fit_points=self.fit_points, fit_iter=self.fit_iter,
-                    exclusion_s=self.exclusion_s, block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
-                    min_mode_s=self.min_mode_s,
+                    fit_points=self.fit_points, fit_iter=self.fit_iter, exclusion_s=self.exclusion_s,
+                    block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s, min_mode_s=self.min_mode_s,
                     calibrate=self.calibrate, shared_basis=(basis_kind or "").startswith("payload"),
-                    rest_band=self.rest_band, seed=self.seed,
-                    progress=self.progress,
+                    rest_band=self.rest_band, seed=self.seed, progress=self.progress,
                     gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device})
 
     def _settings_record(self) -> dict:
@@ -348,7 +337,8 @@ class MultimodalGP(BaseEstimator):
         semi = self.semiparametric if robot is not None else "none"
         fscale = (smooth_sign_scale(np.concatenate([lg.dq for lg in logs_]))
                   if self.friction_feature else None)
-        basis_kind = resolve_mean_basis(self.mean_basis, robot, semi, friction=self.rest_band and fscale is not None)
+        band = self.rest_band and fscale is not None
+        basis_kind = resolve_mean_basis(self.mean_basis, robot, semi, friction=band)
         feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:
@@ -359,7 +349,8 @@ class MultimodalGP(BaseEstimator):
                                          min_push_s=self.min_push_s, min_mode_s=self.min_mode_s,
                                          push_scan_s=self.push_scan_s)
         kw.update(shortened)
-        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis, rest=self._rest_band(feats, basis_kind, fscale))
+        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis,
+                    rest=feats.rest_band(basis_kind) if band else None)
         if self.n_modes == "auto":
             sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
         else:
@@ -378,15 +369,6 @@ class MultimodalGP(BaseEstimator):
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
         self.report_["windows_shortened_s"] = shortened
         return self
-
-    def _rest_band(self, feats, basis_kind, fscale):
-        """The SEM's :class:`RestBand` (None without ``rest_band`` or the friction input)."""
-        if not self.rest_band or fscale is None:
-            return None
-        n = feats.Y.shape[1]
-        p = 0 if feats.basis is None else feats.basis.shape[2]
-        # the smooth-sign columns follow q, dq, ddq (models.features.state_features)
-        return RestBand(feats.rest, list(range(3 * n, 4 * n)), basis_sign_columns(basis_kind, p, n))
 
     def _set_sem(self, sem) -> None:
         self.sem_ = sem

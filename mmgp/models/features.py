@@ -52,6 +52,18 @@ class Features:
     basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
     rest: np.ndarray | None = None    # (T, n) in [0, 1]: how much each joint is at rest (may be stuck)
 
+    def rest_band(self, basis_kind: str | None):
+        """The EM's :class:`~mmgp.models.mstep.RestBand` for these features: the rest weights, the
+        smooth-sign input columns (after q, dq, ddq) and the basis's Coulomb columns; None
+        without the smooth-sign input."""
+        from .mstep import RestBand
+
+        n = self.Y.shape[1]
+        if self.rest is None or self.X.shape[1] < 4 * n:
+            return None
+        p = 0 if self.basis is None else self.basis.shape[2]
+        return RestBand(self.rest, list(range(3 * n, 4 * n)), basis_sign_columns(basis_kind, p, n))
+
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> str | None:
     """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis), with
