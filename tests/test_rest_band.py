@@ -187,3 +187,32 @@ def test_a_push_beyond_the_band_is_found_at_rest():
     assert m.disturbed_[pushed & at_rest].mean() > 0.9
     assert m.disturbed_[pushed].mean() > 0.9
     assert m.disturbed_[~pushed].mean() < 0.01
+
+
+def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
+    # With a robot, rest_band puts Coulomb and viscous columns in the mean basis
+    # ("payload+friction"); the saved model must say so and predict as before when reloaded.
+    import mmgp
+
+    log, _ = mmgp.demo_files()
+    robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
+    model = mmgp.MultimodalGP(n_modes=1, robot=robot, rest_band=True, max_sweeps=8, seed=0).fit(log)
+    assert model.basis_kind_ == "payload+friction"
+    coef = model.basis_coef_[0]
+    assert coef.shape == (1, 10 + 2)
+    model.save(tmp_path / "m")
+    again = mmgp.MultimodalGP.load(tmp_path / "m")
+    assert again.basis_kind_ == "payload+friction"
+    states = model.logs_[0]
+    mean, std = model.predict(states.q, states.dq, states.ddq)
+    mean2, std2 = again.predict(states.q, states.dq, states.ddq)
+    np.testing.assert_allclose(mean2, mean, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(std2, std, rtol=1e-9, atol=1e-9)
+    # The position-only target averages both sliding branches: the Coulomb column cancels.
+    q = np.linspace(-0.5, 1.0, 5)[:, None]
+    both = model.nominal_torque(q)
+    zero = np.zeros_like(q)
+    plus = model._predict(q, zero, zero, 0, friction_sign=1.0)[0]
+    minus = model._predict(q, zero, zero, 0, friction_sign=-1.0)[0]
+    np.testing.assert_allclose(both, 0.5 * (plus + minus), atol=1e-9)
+    assert np.all(np.abs(plus - minus) > 0)       # the branches differ by the learnt friction
