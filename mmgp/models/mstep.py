@@ -273,14 +273,14 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
             centre, half, bvar = fitter.friction_band(gp, coef)
             bands.append(half)
             lu = at_rest_logpdf(lu, Y - centre, half, bvar * params.calib[k], fitter.rest)
-    if fitter.rest is not None:
-        params.stuck = [stuck_samples(fitter.rest, half, var) for half, var in zip(bands, vars_)]
         loglik[:, k] = lu.sum(1)
         if disturbance:
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
             # loaded joint from the scale mixture (pushed_logpdf).
             lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
             loglik[:, K + k] = push_loglik(lu, lp)
+    if fitter.rest is not None:
+        params.stuck = [stuck_samples(fitter.rest, half, var) for half, var in zip(bands, vars_)]
     return Emissions(mus, vars_, loglik, bands if fitter.rest is not None else None)
 
 
