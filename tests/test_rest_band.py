@@ -107,7 +107,7 @@ def test_scan_ignores_a_joints_samples_outside_its_mask():
 # The EM on a stick-slip log
 # ---------------------------------------------------------------------------------------------
 
-def _stick_slip_log(push: bool, seed: int = 0):
+def _stick_slip_log(push: bool, seed: int = 0, move_push: float = 3.5):
     """1-DOF, 50 Hz, 60 s: moves (sliding, Coulomb 1 N*m with sign(dq)) alternate with holds of
     1-2 s where the joint is stuck and the held torque drifts anywhere in +-0.95 N*m (as a PD
     controller's error does while its reference moves on); torque noise 0.03 N*m. Every sixth
@@ -141,7 +141,7 @@ def _stick_slip_log(push: bool, seed: int = 0):
         # pushes during moves: the log has pushes, so the disturbance mode is not abstained from
         c = a + (b - a) // 4
         pushed[c:c + 30] = True
-        y[c:c + 30] += 3.5
+        y[c:c + 30] += move_push
     if push:
         a, b = holds[len(holds) // 2]
         c = a + (b - a) // 4
@@ -164,15 +164,16 @@ def _fit(t, q, dq, ddq, y, band: bool):
 
 
 @pytest.mark.slow
-def test_stuck_holds_neither_alarm_nor_hide_the_pushes():
-    t, q, dq, ddq, y, pushed, holds = _stick_slip_log(push=False)
+def test_stuck_holds_are_not_pushes_where_the_pushes_are_band_sized():
+    # Pushes of 0.6 N*m while moving (20 noise sd, smaller than the 1 N*m band): the chain's
+    # push spread is then the size of the band, and without the band the held torques
+    # (anywhere in +-0.95 N*m) pass for pushes (measured: 33% of the push-free samples).
+    t, q, dq, ddq, y, pushed, holds = _stick_slip_log(push=False, move_push=0.6)
     without = _fit(t, q, dq, ddq, y, band=False)
     with_band = _fit(t, q, dq, ddq, y, band=True)
-    # Without the band, the held torques (anywhere in the band) swell the GP's noise and the
-    # pushes pass for noise (measured: 70% found); with it, every push and no false alarm.
-    assert without.disturbed_[pushed].mean() < 0.9
-    assert with_band.disturbed_[pushed].mean() > 0.95
+    assert without.disturbed_[~pushed].mean() > 0.2
     assert with_band.disturbed_[~pushed].mean() < 0.01
+    assert with_band.disturbed_[pushed].mean() > 0.95
     # The band it reports is the friction it learnt on the sliding branches (1 N*m).
     assert 0.8 < with_band.friction_band_[0, 0] < 1.2
 

@@ -122,7 +122,7 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
         # Coulomb (smooth sign) and viscous terms per joint, last: friction as physics in the
         # mean, so a sliding branch seen once is still predicted (MultimodalGP rest_band).
         sign = np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
-        basis = np.concatenate([basis, friction_columns(sign), friction_columns(dq)], axis=2)
+        basis = np.concatenate([basis, friction_columns(sign)], axis=2)
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
 
 
@@ -131,7 +131,7 @@ def basis_sign_columns(basis_kind: str | None, p: int, n: int) -> list[int] | No
     for ``n`` joints of kind ``basis_kind``; None without friction columns."""
     if not (basis_kind or "").endswith("+friction"):
         return None
-    return list(range(p - 2 * n, p - n))
+    return list(range(p - n, p))
 
 
 def friction_columns(v: np.ndarray) -> np.ndarray:
