@@ -106,7 +106,7 @@ class MultimodalGP(BaseEstimator):
         The scan's threshold (about T / window x joints windows are tested; a Gaussian would
         need ~4.7 for a 1% chance of one false window per 100 s log at 100 Hz, 7 joints).
     rest_band : bool, default False
-        Dry friction as physics: Coulomb/viscous terms in the mean; a resting joint may hold any torque in its band (docs/training.md).
+        Dry friction as physics: a Coulomb term in the mean; a resting joint may hold any torque in its band (docs/training.md).
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).

@@ -164,11 +164,11 @@ def _fit(t, q, dq, ddq, y, band: bool):
 
 
 @pytest.mark.slow
-def test_stuck_holds_are_not_pushes_where_the_pushes_are_band_sized():
-    # Pushes of 0.6 N*m while moving (20 noise sd, smaller than the 1 N*m band): the chain's
-    # push spread is then the size of the band, and without the band the held torques
-    # (anywhere in +-0.95 N*m) pass for pushes (measured: 33% of the push-free samples).
-    t, q, dq, ddq, y, pushed, holds = _stick_slip_log(push=False, move_push=0.6)
+def test_stuck_holds_are_not_pushes():
+    # Pushes of 1.5 N*m while moving (50 noise sd, 1.5x the 1 N*m band): without the band the
+    # held torques (anywhere in +-0.95 N*m) pass for pushes (measured: 35% of the push-free
+    # samples flagged).
+    t, q, dq, ddq, y, pushed, holds = _stick_slip_log(push=False, move_push=1.5)
     without = _fit(t, q, dq, ddq, y, band=False)
     with_band = _fit(t, q, dq, ddq, y, band=True)
     assert without.disturbed_[~pushed].mean() > 0.2
@@ -191,7 +191,7 @@ def test_a_push_beyond_the_band_is_found_at_rest():
 
 
 def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
-    # With a robot, rest_band puts Coulomb and viscous columns in the mean basis
+    # With a robot, rest_band puts a Coulomb column per joint in the mean basis
     # ("payload+friction"); the saved model must say so and predict as before when reloaded.
     import mmgp
 
@@ -200,7 +200,7 @@ def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
     model = mmgp.MultimodalGP(n_modes=1, robot=robot, rest_band=True, max_sweeps=8, seed=0).fit(log)
     assert model.basis_kind_ == "payload+friction"
     coef = model.basis_coef_[0]
-    assert coef.shape == (1, 10 + 2)
+    assert coef.shape == (1, 10 + 1)          # the payload's 10 parameters and one Coulomb level
     model.save(tmp_path / "m")
     again = mmgp.MultimodalGP.load(tmp_path / "m")
     assert again.basis_kind_ == "payload+friction"

@@ -67,7 +67,7 @@ class Features:
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> str | None:
     """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis), with
-    "+friction" appended when ``friction`` (per-joint Coulomb and viscous columns join it)."""
+    "+friction" appended when ``friction`` (a per-joint Coulomb column joins it)."""
     rbd_ok = robot is not None and semiparametric == "residual"
     if kind == "auto":
         kind = "payload" if rbd_ok else "none"
@@ -119,8 +119,9 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
     if basis is not None and extra == "friction":
         if friction_scale is None:
             raise ValueError("a '+friction' mean basis needs the friction input (friction_scale)")
-        # Coulomb (smooth sign) and viscous terms per joint, last: friction as physics in the
-        # mean, so a sliding branch seen once is still predicted (MultimodalGP rest_band).
+        # A Coulomb (smooth sign) column per joint, last: friction as physics in the mean, so a
+        # sliding branch seen once is still predicted (MultimodalGP rest_band). No viscous
+        # column: fitted, it extrapolated 10x the true damping at speed (tuning lever1004).
         sign = np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
         basis = np.concatenate([basis, friction_columns(sign)], axis=2)
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
