@@ -191,7 +191,7 @@ def test_a_push_beyond_the_band_is_found_at_rest():
 
 
 def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
-    # With a robot, rest_band puts a Coulomb column per joint in the mean basis
+    # With a robot, rest_band puts Coulomb and load-dependent friction columns in the mean basis
     # ("payload+friction"); the saved model must say so and predict as before when reloaded.
     import mmgp
 
@@ -200,7 +200,7 @@ def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
     model = mmgp.MultimodalGP(n_modes=1, robot=robot, rest_band=True, max_sweeps=8, seed=0).fit(log)
     assert model.basis_kind_ == "payload+friction"
     coef = model.basis_coef_[0]
-    assert coef.shape == (1, 10 + 1)          # the payload's 10 parameters and one Coulomb level
+    assert coef.shape == (1, 10 + 2)          # the payload's 10 parameters, Coulomb and load-dependent levels
     model.save(tmp_path / "m")
     again = mmgp.MultimodalGP.load(tmp_path / "m")
     assert again.basis_kind_ == "payload+friction"
@@ -217,3 +217,24 @@ def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
     minus = model._predict(q, zero, zero, 0, friction_sign=-1.0)[0]
     np.testing.assert_allclose(both, 0.5 * (plus + minus), atol=1e-9)
     assert np.all(np.abs(plus - minus) > 0)       # the branches differ by the learnt friction
+
+
+def test_branch_bases_are_the_basis_at_each_velocity_sign():
+    # Features.rest_band builds the basis on each sliding branch by swapping the friction
+    # columns; state_features builds it from scratch with the sign forced: they must agree.
+    import mmgp
+    from mmgp.models.features import state_features
+
+    robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
+    rng = np.random.default_rng(4)
+    q, dq, ddq = rng.uniform(-1, 1, (50, 1)), rng.normal(scale=0.3, size=(50, 1)), rng.normal(size=(50, 1))
+    tau = rng.normal(size=(50, 1))
+    v_s = np.array([0.05])
+    f = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, basis_kind="payload+friction")
+    f.rest = rest_weight(dq, v_s)
+    band = f.rest_band("payload+friction")
+    for branch, sign in zip(band.basis_branches, (1.0, -1.0)):
+        ref = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, friction_sign=sign,
+                             basis_kind="payload+friction").basis
+        np.testing.assert_allclose(branch, ref, rtol=1e-12, atol=1e-12)
+    assert f.basis.shape[2] == 12 and band.sign_cols == [3]

@@ -61,8 +61,13 @@ class Features:
         n = self.Y.shape[1]
         if self.rest is None or self.X.shape[1] < 4 * n:
             return None
-        p = 0 if self.basis is None else self.basis.shape[2]
-        return RestBand(self.rest, list(range(3 * n, 4 * n)), basis_sign_columns(basis_kind, p, n))
+        branches = None
+        if (basis_kind or "").endswith("+friction"):
+            # the last 2n columns are sign and sign x |tau_rbd| per joint (state_features)
+            load = np.abs(self.tau_rbd)
+            branches = tuple(np.concatenate([self.basis[..., :-2 * n], friction_columns(np.full_like(load, s)),
+                                             friction_columns(s * load)], axis=2) for s in (1.0, -1.0))
+        return RestBand(self.rest, list(range(3 * n, 4 * n)), branches)
 
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> str | None:
@@ -119,20 +124,14 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
     if basis is not None and extra == "friction":
         if friction_scale is None:
             raise ValueError("a '+friction' mean basis needs the friction input (friction_scale)")
-        # A Coulomb (smooth sign) column per joint, last: friction as physics in the mean, so a
-        # sliding branch seen once is still predicted (MultimodalGP rest_band). No viscous
-        # column: fitted, it extrapolated 10x the true damping at speed (tuning lever1004).
+        # Dry friction per joint, last: Coulomb (smooth sign) and load-dependent (sign x |tau_rbd|,
+        # gear friction growing with the load), as physics in the mean, so a sliding branch seen
+        # once is still predicted and the band at rest grows with the load (MultimodalGP
+        # rest_band). No viscous column: fitted, it extrapolated 10x the true damping at speed
+        # (tuning lever1004).
         sign = np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
-        basis = np.concatenate([basis, friction_columns(sign)], axis=2)
+        basis = np.concatenate([basis, friction_columns(sign), friction_columns(sign * np.abs(tau_rbd))], axis=2)
     return Features(X, Y, tau_rbd, list(starts), basis=basis)
-
-
-def basis_sign_columns(basis_kind: str | None, p: int, n: int) -> list[int] | None:
-    """Indices of the Coulomb (smooth-sign) columns, joint by joint, in a basis of ``p`` columns
-    for ``n`` joints of kind ``basis_kind``; None without friction columns."""
-    if not (basis_kind or "").endswith("+friction"):
-        return None
-    return list(range(p - n, p))
 
 
 def friction_columns(v: np.ndarray) -> np.ndarray:

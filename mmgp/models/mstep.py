@@ -98,11 +98,12 @@ class RestBand:
     """Where joints may be stuck and how to read their friction band (MultimodalSEM ``rest_band``):
     ``weight`` (T, n) rest weights in [0, 1] (:func:`mmgp.physics.context.rest_weight`),
     ``sign_cols`` (n,) the columns of X holding each joint's smooth velocity sign,
-    ``basis_sign_cols`` (n,) the basis's Coulomb columns (None: the basis has none)."""
+    ``basis_branches`` the basis (T, n, p) with every joint's velocity sign set to +1 and to -1
+    (None: the basis does not depend on the sign)."""
 
     weight: np.ndarray
     sign_cols: Sequence[int]
-    basis_sign_cols: Sequence[int] | None = None
+    basis_branches: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class ModeFitter:
@@ -124,7 +125,7 @@ class ModeFitter:
         self.X, self.Y, self.settings, self.t_axis, self.basis = X, Y, settings, t_axis, basis
         self.rest = None if band is None else band.weight
         self.sign_cols = None if band is None else list(band.sign_cols)
-        self.basis_sign_cols = None if band is None or basis is None else band.basis_sign_cols
+        self.basis_branches = None if band is None or basis is None else band.basis_branches
 
     def new_gp(self) -> ExactGP:
         s = self.settings
@@ -195,12 +196,9 @@ class ModeFitter:
             half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
             bvar[idx, j] = 0.5 * (bv[0] + bv[1])
             if coef is not None:
-                fp, fm = self.basis[idx, j] @ coef[j], self.basis[idx, j] @ coef[j]
-                if self.basis_sign_cols is not None:
-                    # the basis's own Coulomb column, on each branch
-                    col, c = self.basis_sign_cols[j], coef[j, self.basis_sign_cols[j]]
-                    fp = fp + c * (1.0 - self.basis[idx, j, col])
-                    fm = fm + c * (-1.0 - self.basis[idx, j, col])
+                # the basis's own friction columns, on each branch
+                plus, minus = self.basis_branches or (self.basis, self.basis)
+                fp, fm = plus[idx, j] @ coef[j], minus[idx, j] @ coef[j]
                 centre[idx, j] += 0.5 * (fp + fm)
                 half[idx, j] = 0.5 * np.abs(branch[0] + fp - branch[1] - fm)
         return centre, half, bvar
