@@ -11,6 +11,7 @@ from scipy.stats import norm, uniform
 from mmgp.models.mstep import at_rest_logpdf, band_logpdf
 from mmgp.models.scan import masked_moving_average, sustained_offset_scan
 from mmgp.physics.context import rest_weight
+from test_push_scan import _brute_average
 
 
 def _band_by_quadrature(e, half, var):
@@ -63,29 +64,16 @@ def test_rest_weight_closed_form():
     assert rest_weight(dq, v_s)[2, 1] < 0.012          # beyond 3 v_s: moving
 
 
-def _loop_average(z, ok, window):
-    T, n = z.shape
-    lo = window // 2
-    mean, frac = np.zeros_like(z), np.zeros((T, n))
-    for i in range(T):
-        idx = [k for k in range(i - lo, i - lo + window) if 0 <= k < T]
-        for j in range(n):
-            good = [k for k in idx if ok[k, j]]
-            frac[i, j] = len(good) / window
-            if good:
-                mean[i, j] = z[good, j].mean()
-    return mean, frac
-
-
 @pytest.mark.parametrize("window", [1, 3, 6])
 def test_per_joint_masked_average_matches_a_loop(window):
     rng = np.random.default_rng(window)
     z = rng.normal(size=(35, 3))
     ok = rng.random((35, 3)) < 0.6
     mean, frac = masked_moving_average(z, ok, window)
-    ref_mean, ref_frac = _loop_average(z, ok, window)
-    np.testing.assert_allclose(frac, ref_frac, atol=1e-12)
-    np.testing.assert_allclose(mean, ref_mean, atol=1e-12)
+    for j in range(3):       # each joint against the one-mask loop of test_push_scan
+        ref_mean, ref_frac = _brute_average(z[:, j:j + 1], ok[:, j], window)
+        np.testing.assert_allclose(frac[:, j], ref_frac, atol=1e-12)
+        np.testing.assert_allclose(mean[:, j], ref_mean[:, 0], atol=1e-12)
 
 
 def test_scan_ignores_a_joints_samples_outside_its_mask():
