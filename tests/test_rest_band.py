@@ -192,6 +192,9 @@ def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
     model.save(tmp_path / "m")
     again = mmgp.MultimodalGP.load(tmp_path / "m")
     assert again.basis_kind_ == "payload+friction"
+    # the report says how wide the band it read off the model is (the replica's friction)
+    band = model.report_["friction_band_half_width"]
+    assert len(band) == 1 and band[0][0] > 0
     states = model.logs_[0]
     mean, std = model.predict(states.q, states.dq, states.ddq)
     mean2, std2 = again.predict(states.q, states.dq, states.ddq)

@@ -50,6 +50,9 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
                         "n_by_scan": int(getattr(sem, "scan_flagged_", 0)),
                         "abstained": bool(sem.disturbance and getattr(sem, "abstain", False)
                                           and getattr(sem, "disturbance_gain_", 1.0) <= 0.0)},
+        # rest_band: each mode's friction band at rest (median half-width over resting
+        # samples, N*m, per joint); zeros when it is off or nothing rests
+        "friction_band_half_width": np.asarray(getattr(sem, "friction_band_", np.zeros((1, n)))).tolist(),
         "deterministic": sem.estep == "mpm",
         "switching_prior": {"stay_prob": sem.stay_prob_, "learned": sem.stay_prob is None},
         "likelihood_trace": [{"sweep": r.sweep, "log_joint": r.log_joint, "log_marginal": r.log_marginal,
