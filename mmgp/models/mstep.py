@@ -181,17 +181,26 @@ class ModeFitter:
         """
         T, n = self.Y.shape
         centre, half, bvar = np.zeros((T, n)), np.zeros((T, n)), np.ones((T, n))
-        for j in range(n):
-            idx = np.flatnonzero(self.rest[:, j] > 0.01)
-            if not len(idx):
-                continue
-            branch, bv = [], []
+        rows = [np.flatnonzero(self.rest[:, j] > 0.01) for j in range(n)]
+        if not any(len(r) for r in rows):
+            return centre, half, bvar
+        # Every joint's two branches in one out-of-window prediction: queries at equal times
+        # share their window's factorisation (mmgp.gp.windowed), 2n calls would repeat it.
+        queries, at = [], []
+        for j, idx in enumerate(rows):
             for sign in (1.0, -1.0):
                 Xs = self.X[idx].copy()
                 Xs[:, self.sign_cols[j]] = sign
-                mean, var = self._out_of_window(gp, Xs, idx, support)
-                branch.append(mean[:, j])
-                bv.append(var[:, j])
+                queries.append(Xs)
+                at.append(idx)
+        mean_all, var_all = self._out_of_window(gp, np.vstack(queries), np.concatenate(at), support)
+        bounds = np.cumsum([0] + [len(a) for a in at])
+        for j, idx in enumerate(rows):
+            if not len(idx):
+                continue
+            parts = [slice(bounds[2 * j + b], bounds[2 * j + b + 1]) for b in (0, 1)]
+            branch = [mean_all[p, j] for p in parts]
+            bv = [var_all[p, j] for p in parts]
             centre[idx, j] = 0.5 * (branch[0] + branch[1])
             half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
             bvar[idx, j] = 0.5 * (bv[0] + bv[1])
