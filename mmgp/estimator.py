@@ -350,7 +350,7 @@ class MultimodalGP(BaseEstimator):
                                          push_scan_s=self.push_scan_s)
         kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis,
-                    rest=feats.rest_band(basis_kind) if band else None)
+                    rest=feats.rest_band(basis_kind, fscale) if band else None)
         if self.n_modes == "auto":
             sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
         else:

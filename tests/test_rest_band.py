@@ -222,8 +222,7 @@ def test_branch_bases_are_the_basis_at_each_velocity_sign():
     tau = rng.normal(size=(50, 1))
     v_s = np.array([0.05])
     f = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, basis_kind="payload+friction")
-    f.rest = rest_weight(dq, v_s)
-    band = f.rest_band("payload+friction")
+    band = f.rest_band("payload+friction", v_s)
     for branch, sign in zip(band.basis_branches, (1.0, -1.0)):
         ref = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, friction_sign=sign,
                              basis_kind="payload+friction").basis

@@ -11,7 +11,7 @@ import numpy as np
 from ..data.differentiation import SavitzkyGolay, complete_derivatives, downsample
 from ..data.logs import RobotLog, read_log
 from ..errors import InputError
-from ..physics.context import rest_weight, smooth_sign_scale
+from ..physics.context import rest_weight
 
 
 def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_window_s: float | None = None,
@@ -50,16 +50,16 @@ class Features:
     starts: list[int]
     t: np.ndarray | None = None
     basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
-    rest: np.ndarray | None = None    # (T, n) in [0, 1]: how much each joint is at rest (may be stuck)
 
-    def rest_band(self, basis_kind: str | None):
-        """The EM's :class:`~mmgp.models.mstep.RestBand` for these features: the rest weights, the
-        smooth-sign input columns (after q, dq, ddq) and the basis's Coulomb columns; None
-        without the smooth-sign input."""
+    def rest_band(self, basis_kind: str | None, friction_scale: np.ndarray):
+        """The EM's :class:`~mmgp.models.mstep.RestBand` for these features: the rest weights of
+        the velocities (X's columns n..2n) at the smooth-sign scale ``friction_scale`` (n,) rad/s,
+        the smooth-sign input columns (after q, dq, ddq) and the basis on both sliding branches;
+        None without the smooth-sign input."""
         from .mstep import RestBand
 
         n = self.Y.shape[1]
-        if self.rest is None or self.X.shape[1] < 4 * n:
+        if self.X.shape[1] < 4 * n:
             return None
         branches = None
         if (basis_kind or "").endswith("+friction"):
@@ -67,7 +67,7 @@ class Features:
             load = np.abs(self.tau_rbd)
             branches = tuple(np.concatenate([self.basis[..., :-2 * n], friction_columns(np.full_like(load, s)),
                                              friction_columns(s * load)], axis=2) for s in (1.0, -1.0))
-        return RestBand(self.rest, list(range(3 * n, 4 * n)), branches)
+        return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches)
 
 
 def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> str | None:
@@ -93,7 +93,6 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
     f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
     f.t = np.concatenate([lg.t for lg in logs])
-    f.rest = rest_weight(dq, smooth_sign_scale(dq) if friction_scale is None else friction_scale)
     return f
 
 

@@ -201,23 +201,27 @@ class ModeFitter:
             parts = [slice(bounds[2 * j + b], bounds[2 * j + b + 1]) for b in (0, 1)]
             branch = [mean_all[p, j] for p in parts]
             bv = [var_all[p, j] for p in parts]
+            if coef is not None:
+                # the basis mean on each branch (its friction columns flip with the sign)
+                plus, minus = self.basis_branches or (self.basis, self.basis)
+                branch = [branch[0] + plus[idx, j] @ coef[j], branch[1] + minus[idx, j] @ coef[j]]
             centre[idx, j] = 0.5 * (branch[0] + branch[1])
             half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
             bvar[idx, j] = 0.5 * (bv[0] + bv[1])
-            if coef is not None:
-                # the basis's own friction columns, on each branch
-                plus, minus = self.basis_branches or (self.basis, self.basis)
-                fp, fm = plus[idx, j] @ coef[j], minus[idx, j] @ coef[j]
-                centre[idx, j] += 0.5 * (fp + fm)
-                half[idx, j] = 0.5 * np.abs(branch[0] + fp - branch[1] - fm)
         return centre, half, bvar
+
+    def _windowed(self) -> bool:
+        """Predictions leave each sample's time window out (a time axis and both windows set)."""
+        s = self.settings
+        return self.t_axis is not None and s.exclusion_s > 0 and s.block_s > 0
 
     def _out_of_window(self, gp, Xq: np.ndarray, idx: np.ndarray, support: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance (incl. noise) (M, n) at inputs Xq of samples ``idx``: leaving each
         sample's time window out (as :meth:`_gp_predictive`), else the GP's ordinary predictive."""
-        s, n = self.settings, self.Y.shape[1]
-        if self.t_axis is not None and s.exclusion_s > 0 and s.block_s > 0:
-            mean, var = windowed_predictive(gp, Xq, self.t_axis[idx], self.t_axis[support], s.exclusion_s)
+        n = self.Y.shape[1]
+        if self._windowed():
+            mean, var = windowed_predictive(gp, Xq, self.t_axis[idx], self.t_axis[support],
+                                            self.settings.exclusion_s)
             return mean.reshape(len(idx), n), var.reshape(len(idx), n)
         mean, std = gp.predict(Xq, include_noise=True)
         return np.asarray(mean).reshape(len(idx), n), np.asarray(std).reshape(len(idx), n) ** 2
@@ -226,7 +230,7 @@ class ModeFitter:
         X, s = self.X, self.settings
         support = evenly_spaced(members, s.max_support)
         gp = self.new_gp()
-        windowed = self.t_axis is not None and s.exclusion_s > 0 and s.block_s > 0
+        windowed = self._windowed()
         T, n = Y.shape
         if windowed and optimise:
             hyper = self._windowed_hyper(gp, Y, support, hyper)
