@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..physics.context import Context
-from .selection import FoldGrams, atom_indices, own_gain, signed_rank_p
+from .selection import FoldGrams, atom_indices, gain_p, own_gain
 
 #: bootstrap replicates and the interval's coverage
 N_BOOT = 200
@@ -189,18 +189,19 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
     with them, per fold; and the joint it helps most."""
     index = {a: i for i, a in enumerate(phys.keys)}
     ctx, K, names = phys.ctx, phys.grams.K, phys.ctx.joint_names
-    err_wo, _, d = own_gain(e, phys.chosen, index, phys.grams, phys.w)
+    err_wo, err_with, d = own_gain(e, phys.chosen, index, phys.grams, phys.w)
     per_joint = 1 - err_phys.sum(0) / np.maximum(err_wo.sum(0), 1e-300)
     aff = e.affected_joints(ctx)
     jmain = max(aff, key=lambda j: per_joint[j]) if aff else int(np.argmax(per_joint))
+    judged = "on its own joint, the joint-weighted total not raised" if e.own_joint else "joint-weighted sum"
     ev = {"cv_error_reduction": float(per_joint[jmain]),
           "cv_error_reduction_joint": names[jmain],
           "cv_error_reduction_per_joint": {names[j]: float(per_joint[j]) for j in aff},
           "cv_improvement_in_se": float(d.mean() / (d.std(ddof=1) / np.sqrt(K) + 1e-300)),
-          "p_value_without_it": signed_rank_p(d),
+          "p_value_without_it": gain_p(e, err_wo, err_with, phys.w),
           "selection_step": phys.chosen.index(e) + 1,
           "criterion": f"{K}-fold time-block CV, one-sided Wilcoxon signed-rank test of the paired held-out "
-                       f"gains at family-wise level {alpha:g} (Bonferroni over each step's candidates); kept "
+                       f"gains ({judged}) at family-wise level {alpha:g} (Bonferroni over each step's candidates); kept "
                        "only while its own gain stays significant"}
     ext = [o.name for o in phys.chosen if o is not e and o.index == e.index and o.name in e.requires]
     if ext:
