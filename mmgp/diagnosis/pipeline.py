@@ -9,8 +9,9 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
 1. *Locate*: residual ``r = tau - tau_rbd(q, dq, ddq)`` per joint; where it concentrates (near
    zero velocity, high load, position/acceleration ranges, time spans). Residual and every
    regressor column are low-passed alike (parallel filtering). A joint's equation is left out
-   where its velocity is within noise of zero (``valid_mask``): stuck, static friction is
-   set-valued, and fitting it would feed look-alike effects.
+   where its velocity stays within noise of zero (``valid_mask``): stuck, static friction is
+   set-valued, and fitting it would feed look-alike effects. A joint only passing through zero
+   velocity (a reversal, shorter than a tenth of the filter's cutoff period) is not stuck.
 2. *Separate* pushes before naming anything: a robust (Huber then Tukey IRLS) fit of the whole
    library gives sample weights with pushes at zero; effects are selected on those weights; the
    residual of the *selected* model is scanned for pushes (chi-square scan at a family-wise
@@ -29,7 +30,8 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    that the learner's GP had absorbed.
 3. *Name*: forward selection on time-block cross-validation (``n_folds`` blocks): an effect is
    added only while the best candidate's paired held-out gain is significant (one-sided
-   Wilcoxon signed-rank test over the blocks) at family-wise level ``alpha`` (Bonferroni over the
+   Wilcoxon signed-rank test over the blocks; an effect on one joint's torque is judged on that
+   joint, the weighted total not raised) at family-wise level ``alpha`` (Bonferroni over the
    candidates tried at that step); physical constraints must hold; nested effects (load
    dependence in Coulomb friction) are only tried as extensions. No magnitude threshold.
 4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
@@ -105,9 +107,10 @@ class Diagnoser(BaseEstimator):
         least 2) and the most samples it sees (evenly thinned in time).
     em_gate_peak: scanned spans peaking at this many times the scan threshold are kept without
         the learner's confirmation.
-    rest_factor: a joint's equation is left out where |dq| < rest_factor * v_s (the velocity is
-        within noise of zero, widened by the filter's memory): at rest friction takes any value
-        in [-tau_c, tau_c] (stiction), which no function of the state can fit.
+    rest_factor: a joint's equation is left out where |dq| < rest_factor * v_s for at least a
+        tenth of the filter's cutoff period (the velocity stays within noise of zero; widened by
+        the filter's memory): at rest friction takes any value in [-tau_c, tau_c] (stiction),
+        which no function of the state can fit.
     sign_noise_factor: v_s = this times the velocity noise (smooth sign of Coulomb friction).
     lowpass: low-pass residual and regressor columns alike (parallel filtering) at a cutoff set
         by the trajectory's bandwidth, so noise in estimated accelerations does not bias the fit.
