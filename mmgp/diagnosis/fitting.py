@@ -209,9 +209,23 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
     return ev, jmain
 
 
-def effect_findings(phys: PhysicsFit, *, alpha: float) -> list[dict]:
+def torque_share(phys: PhysicsFit, e, torque_sd: np.ndarray) -> float:
+    """How large effect ``e``'s fitted torque is: the largest, over the joints it acts on, of its
+    RMS (low-passed columns, every sample) over the joint torque's standard deviation
+    ``torque_sd`` (n,) N*m."""
+    index = {a: i for i, a in enumerate(phys.keys)}
+    S = atom_indices([e], index)
+    coef = phys.coefficients()
+    tq = phys.A[:, :, S] @ np.array([coef.get(phys.keys[i], 0.0) for i in S])
+    share = np.sqrt((tq ** 2).mean(0)) / np.maximum(torque_sd, 1e-300)
+    joints = e.affected_joints(phys.ctx) or list(range(len(share)))
+    return float(share[joints].max())
+
+
+def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | None = None) -> list[dict]:
     """One finding per chosen effect that no other chosen effect contains, with its held-out
-    evidence, standard deviations and block-bootstrap intervals."""
+    evidence, standard deviations and block-bootstrap intervals (and, given each joint torque's
+    standard deviation ``torque_sd`` (n,), its ``torque_share``)."""
     from .result import effect_finding
 
     err_phys = phys.grams.cv_errors(phys.S, phys.w)
@@ -223,6 +237,8 @@ def effect_findings(phys: PhysicsFit, *, alpha: float) -> list[dict]:
         if not e.name or any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
             continue
         ev, jmain = _evidence(phys, e, err_phys, alpha)
+        if torque_sd is not None:
+            ev["torque_share"] = torque_share(phys, e, torque_sd)
         params, std = e.params(coef, cov)
         ev = {**ev, "params_std": std, "params_interval": parameter_intervals(e, phys, params),
               "interval_level": LEVEL, "interval_method": f"block bootstrap over the {phys.grams.K} time blocks, "

@@ -250,7 +250,7 @@ class Diagnoser(BaseEstimator):
                 pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
                 use = ~pushes.disturbed & ~near
             laps("reselect_s")
-        findings = effect_findings(phys, alpha=self.alpha)
+        findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(st.torque_variance(prob, use)))
         for f in findings:
             if f["effect"] == "inertial_parameters":
                 f["evidence"].update(identifiability=rb_ev, reidentification=reid)
