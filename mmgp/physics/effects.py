@@ -314,14 +314,9 @@ class TorqueOffset(_JointColumnEffect, name="torque_offset", label="a torque-sen
 
 class Payload(Effect):
     """Extra rigid mass on link ``index`` (the link joint ``index`` moves): mass (kg >= 0) and
-    centre of mass in the link frame (m). Columns: the point mass linearised at the context's
-    centre-of-mass guess (``mmgp.physics.payload.linearised_columns``), so the first four
-    coefficients are (m, m c_x, m c_y, m c_z), and :meth:`relinearise` moves the guess to the fit;
-    then the body's own rotational inertia about its centre of mass, six coefficients on the link
-    regressor's inertia columns (Pinocchio's order xx, xy, yy, xz, yz, zz; kg*m^2). A rigid payload
-    has one, and without it the proximal joints' armature took it (validation val09: a 3 kg body,
-    0.009 kg*m^2 of "armature" on the UR5's shoulder). The contract reports mass and centre of
-    mass; the inertia is not reported."""
+    centre of mass in the link frame (m), as a point mass. Columns: the point mass linearised at
+    the context's centre-of-mass guess (``mmgp.physics.payload.linearised_columns``), so the
+    coefficients are (m, m c_x, m c_y, m c_z); :meth:`relinearise` moves the guess to the fit."""
 
     name = "payload"
     label = "a payload"
@@ -333,12 +328,11 @@ class Payload(Effect):
     switchable = True  # attached and removed during a log
 
     def atoms(self):
-        return tuple(("pl", self.index, i) for i in range(10))
+        return tuple(("pl", self.index, i) for i in range(4))
 
     def columns(self, ctx):
-        Y = ctx.link_regressor(self.index)
-        C = linearised_columns(Y, ctx.payload_com.get(self.index, np.zeros(3)))
-        return [C[:, :, i] for i in range(4)] + [Y[:, :, i] for i in range(4, 10)]
+        C = linearised_columns(ctx.link_regressor(self.index), ctx.payload_com.get(self.index, np.zeros(3)))
+        return [C[:, :, i] for i in range(4)]
 
     @property
     def nonneg(self):
@@ -353,7 +347,7 @@ class Payload(Effect):
 
     def cones(self, ctx):
         a = self.atoms()
-        return [(a[0], list(a[1:4]), ctx.reach)] if ctx.reach is not None else []
+        return [(a[0], list(a[1:]), ctx.reach)] if ctx.reach is not None else []
 
     def relinearise(self, coef, ctx):
         return ctx.with_payload_com(self.index, com_from_moments(*self._moments(coef)))
@@ -368,11 +362,11 @@ class Payload(Effect):
         return [k for k in links if np.abs(ctx.link_regressor(k)[:, :, 0]).max() > 1e-6 * scale]
 
     def _moments(self, coef: dict) -> tuple[float, np.ndarray]:
-        th = np.array([coef[a] for a in self.atoms()[:4]])
+        th = np.array([coef[a] for a in self.atoms()])
         return float(th[0]), th[1:]
 
     def params(self, coef, cov):
-        keys = self.atoms()[:4]
+        keys = self.atoms()
         th = np.array([coef[k] for k in keys])
         C = np.array([[cov.get((a, b), 0.0) for b in keys] for a in keys])
         m = th[0]
@@ -389,9 +383,8 @@ class Payload(Effect):
                 {"mass": float(np.sqrt(max(C[0, 0], 0.0))), "com": [float(x) for x in com_std]})
 
     def coefficients(self, params):
-        # a point mass: no rotational inertia of its own
         m, c = params["mass"], np.asarray(params["com"], dtype=np.float64)
-        return dict(zip(self.atoms(), [m, *(m * c), *np.zeros(6)]))
+        return dict(zip(self.atoms(), [m, *(m * c)]))
 
     def torque(self, params, ctx):
         # the exact point mass, whatever the linearisation point of the columns
