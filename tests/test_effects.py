@@ -89,39 +89,6 @@ def test_payload_columns_match_heavier_link(setup):
     assert p["mass"] == pytest.approx(m) and np.allclose(p["com"], c)
 
 
-def test_payload_inertia_columns_match_a_rigid_body(setup):
-    """A rigid payload with its own rotational inertia I_c about its centre of mass: the point
-    mass's columns at (m, m c) plus the payload inertia's at I_c = the RNEA of a model whose link
-    carries that body (Pinocchio)."""
-    model, q, dq, ddq, ctx = setup
-    link, m, c = 6, 1.4, np.array([0.03, 0.01, 0.1])
-    I_c = np.array([[0.012, 0.001, -0.002], [0.001, 0.009, 0.0005], [-0.002, 0.0005, 0.006]])
-    ctx.payload_com[link] = c
-    point = _apply(fx.Payload(link), ctx, dict(zip(fx.Payload(link).atoms(), [m, *(m * c)])))
-    own = _apply(fx.PayloadInertia(link), ctx, dict(zip(fx.PayloadInertia(link).atoms(),
-                                                        [I_c[0, 0], I_c[0, 1], I_c[1, 1], I_c[0, 2], I_c[1, 2], I_c[2, 2]])))
-    heavy = model.copy()
-    heavy.inertias[link + 1] = heavy.inertias[link + 1] + pin.Inertia(m, c, I_c)
-    data = heavy.createData()
-    ref = np.array([pin.rnea(heavy, data, q[i], dq[i], ddq[i]) for i in range(len(q))]) - ctx.tau_rbd
-    np.testing.assert_allclose(point + own, ref, atol=1e-9)
-    assert np.abs(point - ref).max() > 1e-3  # the body's own inertia shows on this trajectory
-
-
-def test_payload_inertia_admissible_only_when_a_body_can_have_it():
-    """Any cloud of point masses has an admissible inertia about its centre of mass; a matrix
-    with a negative moment, or one principal moment above the sum of the others, is refused."""
-    e = fx.PayloadInertia(6)
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        m, x = rng.uniform(0.1, 1, 8), rng.normal(0, 0.05, (8, 3))
-        x -= (m[:, None] * x).sum(0) / m.sum()
-        I = sum(mi * ((xi @ xi) * np.eye(3) - np.outer(xi, xi)) for mi, xi in zip(m, x))
-        assert e.admissible(dict(zip(e.atoms(), [I[0, 0], I[0, 1], I[1, 1], I[0, 2], I[1, 2], I[2, 2]])), None)
-    for diag in ((1.0, 1.0, 3.0), (0.01, 0.01, -0.001)):
-        assert not e.admissible(dict(zip(e.atoms(), [diag[0], 0, diag[1], 0, 0, diag[2]])), None)
-
-
 def test_smooth_sign_scale_tracks_noise():
     rng = np.random.default_rng(1)
     t = np.linspace(0, 10, 5000)

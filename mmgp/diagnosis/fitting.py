@@ -234,8 +234,7 @@ def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | N
     cov = {(phys.keys[a], phys.keys[b]): float(C[ia, ib]) for ia, a in enumerate(phys.S) for ib, b in enumerate(phys.S)}
     findings = []
     for e in phys.chosen:
-        if not e.name or not e.reported or \
-                any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
+        if not e.name or any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
             continue
         ev, jmain = _evidence(phys, e, err_phys, alpha)
         if torque_sd is not None:

@@ -66,8 +66,7 @@ class Effect:
     ``switchable`` (may take one of two values over the log: a mode-switch candidate),
     ``sensor`` (an artefact of the logged signals, not a torque the joint transmits: left out of
     the load that load-dependent friction scales with), ``own_joint`` (its columns act on joint
-    ``index``'s torque alone: its held-out gain is judged on that joint, ``selection.paired_gains``),
-    ``reported`` (a finding of its own; False: told within the effect it extends).
+    ``index``'s torque alone: its held-out gain is judged on that joint, ``selection.paired_gains``).
 
     By default parameter i is the coefficient of atom i (``params``/``coefficients``); effects
     with another map override both.
@@ -84,7 +83,6 @@ class Effect:
     switchable: ClassVar[bool] = False
     sensor: ClassVar[bool] = False
     own_joint: ClassVar[bool] = False
-    reported: ClassVar[bool] = True
 
     def __init_subclass__(cls, **declared):
         # a one-column effect is declared in its class statement: name=, label=, units=, kind=
@@ -405,56 +403,6 @@ class Payload(Effect):
         com = ", ".join(f"{c:.3f}" for c in params["com"])
         return (f"link {ctx.link_names[self.index]}: {self.label} of {format_value(params['mass'], std['mass'])} kg "
                 f"at [{com}] m (link frame)")
-
-
-class PayloadInertia(Effect):
-    """A found payload's own rotational inertia about its centre of mass: six coefficients on the
-    link regressor's inertia columns (Pinocchio's order xx, xy, yy, xz, yz, zz; kg*m^2). A rigid
-    payload has one and :class:`Payload`'s point mass lacks it: on validation val09 (a simulated
-    UR5 with a 3 kg body) what it left was taken for a 0.7 s push once every equation was kept.
-    Tried only as an extension of a payload on the same link (``requires``), admissible only
-    when physically possible (positive semi-definite, each principal moment at most the sum of
-    the other two); told within the payload's finding, not as a finding of its own (the
-    contract's payload is mass and centre of mass). Always in the model, as every payload's six
-    inertia atoms, it cost the real TIAGo (arm 5 held-out 0.56 -> 3.2): tried, not assumed."""
-
-    name = "payload_inertia"
-    label = "the payload's own rotational inertia"
-    units = {"inertia": "kg*m^2"}
-    scope = "link"
-    requires = ("payload",)
-    reported = False
-
-    def atoms(self):
-        return tuple(("pli", self.index, i) for i in range(6))
-
-    def columns(self, ctx):
-        Y = ctx.link_regressor(self.index)
-        return [Y[:, :, 4 + i] for i in range(6)]
-
-    @classmethod
-    def candidate_indices(cls, ctx):
-        return Payload.candidate_indices(ctx)
-
-    def admissible(self, coef, ctx):
-        from .inertial import unvech
-
-        moments = np.linalg.eigvalsh(unvech(np.array([coef[a] for a in self.atoms()])))
-        tol = 1e-9 * max(np.abs(moments).max(), 1e-12)
-        return bool(moments.min() >= -tol and 2 * moments.max() <= moments.sum() + tol)
-
-    def params(self, coef, cov):
-        return ({"inertia": [float(coef[a]) for a in self.atoms()]},
-                {"inertia": [_std(cov, a) for a in self.atoms()]})
-
-    def coefficients(self, params):
-        return dict(zip(self.atoms(), params["inertia"]))
-
-    def where(self, ctx):
-        return {"link": ctx.link_names[self.index]}
-
-    def affected_joints(self, ctx):
-        return list(range(self.index + 1))
 
 
 class AttachedBody(Effect):
