@@ -193,7 +193,8 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
     per_joint = 1 - err_phys.sum(0) / np.maximum(err_wo.sum(0), 1e-300)
     aff = e.affected_joints(ctx)
     jmain = max(aff, key=lambda j: per_joint[j]) if aff else int(np.argmax(per_joint))
-    judged = "on its own joint, the joint-weighted total not raised" if e.own_joint else "joint-weighted sum"
+    judged = ("on its own joint and on the joint-weighted sum, the smaller p doubled; the weighted total not raised"
+              if e.own_joint else "joint-weighted sum")
     ev = {"cv_error_reduction": float(per_joint[jmain]),
           "cv_error_reduction_joint": names[jmain],
           "cv_error_reduction_per_joint": {names[j]: float(per_joint[j]) for j in aff},

@@ -30,15 +30,18 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    that the learner's GP had absorbed.
 3. *Name*: forward selection on time-block cross-validation (``n_folds`` blocks): an effect is
    added only while the best candidate's paired held-out gain is significant (one-sided
-   Wilcoxon signed-rank test over the blocks; an effect on one joint's torque is judged on that
-   joint, the weighted total not raised) at family-wise level ``alpha`` (Bonferroni over the
+   Wilcoxon signed-rank test over the blocks; an effect on one joint's torque is tested on that
+   joint and on the joint-weighted sum, the smaller p doubled, the weighted total not raised:
+   ``selection.gain_p``) at family-wise level ``alpha`` (Bonferroni over the
    candidates tried at that step); physical constraints must hold; nested effects (load
    dependence in Coulomb friction) are only tried as extensions. No magnitude threshold.
 4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
    GP (``mmgp.gp.exact.ExactGP``) on what is left; held-out normalised MSE per joint at three
    stages. Mode switches: one vs two payload modes per link (sticky two-state switching
    regression, HMM predictive from samples a filter memory earlier, on held-out blocks).
-5. *Tell*: findings per CONTRACT section 2/3, a Markdown report and residual plots.
+5. *Tell*: findings per CONTRACT section 2/3 (a finding whose torque stays under half a percent of
+   its joint torque's spread is withheld as too small to name: ``plausibility.MIN_TORQUE_SHARE``),
+   a Markdown report and residual plots.
 
 Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
 """

@@ -51,7 +51,7 @@ def paired_gains(e, before: np.ndarray, after: np.ndarray, w: np.ndarray) -> np.
     their fold-to-fold noise would drown a gain the joint shows in every block (real Panda,
     Coulomb friction on joint 4: -67% held-out error on 20 of 20 blocks, p 1e-6 on the joint, 4e-3
     on the weighted sum of all seven). Any other effect on the joint-weighted sum."""
-    if getattr(e, "own_joint", False):
+    if e.own_joint:
         return before[:, e.index] - after[:, e.index]
     return (before - after) @ w
 
@@ -66,7 +66,7 @@ def gain_p(e, before: np.ndarray, after: np.ndarray, w: np.ndarray) -> float:
     if float((before - after).sum(0) @ w) <= 0.0:
         return 1.0
     p = signed_rank_p(paired_gains(e, before, after, w))
-    if getattr(e, "own_joint", False) and before.shape[1] > 1:
+    if e.own_joint and before.shape[1] > 1:
         # (on one joint the two are the same test)
         p = min(1.0, 2.0 * min(p, signed_rank_p((before - after) @ w)))
     return p
