@@ -317,3 +317,109 @@ def test_diagnosis_learner_flags_nothing_on_logs_without_pushes(cases):
                                 rest_factor=d.rest_factor)
         em = st.run_learner(prob, 1, max_points=d.em_points, seed=0)
         assert (em["p_disturbed"] > 0.5).mean() < 0.01, name
+
+
+def _rest_runs_walk(rest, min_len):
+    """Brute force: walk each joint sample by sample, measuring every run before keeping it."""
+    out = np.zeros_like(rest)
+    T, n = rest.shape
+    for j in range(n):
+        i = 0
+        while i < T:
+            if not rest[i, j]:
+                i += 1
+                continue
+            k = i
+            while k < T and rest[k, j]:
+                k += 1
+            if k - i >= min_len:
+                out[i:k, j] = True
+            i = k
+    return out
+
+
+def test_rest_runs_match_a_sample_walk():
+    from mmgp.diagnosis.separation import rest_runs
+
+    rng = np.random.default_rng(3)
+    for min_len in (1, 2, 5, 10):
+        rest = rng.random((500, 3)) < 0.7
+        np.testing.assert_array_equal(rest_runs(rest, min_len), _rest_runs_walk(rest, min_len))
+
+
+def test_valid_mask_keeps_passages_through_zero_velocity():
+    """A joint reversing every second spends ~3 samples within the band: not at rest, so nothing
+    is dropped; a 1 s hold is dropped, widened by half a cutoff period each side."""
+    t = np.arange(2000) * 0.01
+    dq = np.stack([np.sin(np.pi * t), np.cos(np.pi * t)], 1)
+    dq[1000:1100, 0] = 0.0
+    M = valid_mask(dq, np.array([0.05, 0.05]), t, f_c=1.0)
+    # brute force: rest = |dq| < v_s in runs of >= 0.1 / (f_c dt) = 10 samples, widened by 50
+    rest = _rest_runs_walk(np.abs(dq) < 0.05, 10)
+    want = np.ones((2000, 2))
+    for i, j in zip(*np.nonzero(rest)):
+        want[max(0, i - 50):i + 51, j] = 0.0
+    np.testing.assert_array_equal(M, want)
+    # the reversals (every second) keep their equations: the old rule dropped +-0.5 s around each
+    assert M[:, 1].all() and M[:900, 0].all() and M[1250:, 0].all()
+    assert 200 <= (M[:, 0] == 0).sum() <= 210
+
+
+class _SharedBody(fx.Effect):
+    """Two columns on every joint (a stand-in for the re-identified body), one of them like
+    friction on joint 0."""
+
+    scope = "model"
+
+    def __init__(self, cols):
+        super().__init__(0)
+        self.cols = cols
+
+    def atoms(self):
+        return (("shared", 0), ("shared", 1))
+
+    def columns(self, ctx):
+        return [self.cols[..., 0], self.cols[..., 1]]
+
+
+def _shared_body_case(seed, amp):
+    rng = np.random.default_rng(seed)
+    T, n = 3000, 4
+    t = np.linspace(0, 30, T)
+    q = np.stack([np.sin(0.4 * t * (j + 1) + j) for j in range(n)], 1)
+    dq = np.gradient(q, t, axis=0)
+    ctx = Context(q, dq, np.gradient(dq, t, axis=0), np.zeros((T, n)), np.zeros((T, n, n)),
+                  np.zeros((T, n, 10 * n)), np.full(n, 0.02), [f"j{j}" for j in range(n)], [f"l{j}" for j in range(n)])
+    cols = np.stack([np.cos(q + 0.3 * k) * (1 + k) for k in range(2)], 2)
+    cols[:, 0, 1] = np.tanh(dq[:, 0] / 0.02) + 0.5 * np.sin(q[:, 0])
+    body = _SharedBody(cols)
+    r = cols @ np.array([1.0, 0.5])
+    r[:, 0] += amp * np.tanh(dq[:, 0] / 0.02) + 0.02 * rng.standard_normal(T)
+    r[:, 1:] += rng.standard_normal((T, n - 1))  # the other joints: 50x noisier, weighted alike
+    lib = [fx.CoulombFriction(0)] + [fx.ViscousFriction(j) for j in range(n)]
+    keys, A = fx.build_atoms([body] + lib, ctx)
+    grams = FoldGrams(A, r, np.ones(T, bool), time_block_folds(T, 20))
+    return ctx, body, lib, keys, grams
+
+
+def test_friction_on_one_joint_is_judged_on_that_joint():
+    """Coulomb friction at 1.5x joint 0's noise, beside a shared body and three noisy joints:
+    on the joint-weighted sum the gain is not significant at the step's level (checked: the
+    premise), on its own joint it is, and the selection names it; with no friction it names
+    nothing."""
+    from mmgp.diagnosis.selection import gain_p
+
+    w = np.ones(4)
+    for seed in (0, 1, 2):
+        ctx, body, lib, keys, grams = _shared_body_case(seed, amp=0.03)
+        idx = {a: i for i, a in enumerate(keys)}
+        S0 = [idx[("shared", 0)], idx[("shared", 1)]]
+        e0, e1 = grams.cv_errors(S0, w), grams.cv_errors(S0 + [idx[("sign", 0)]], w)
+        level = 0.05 / len(lib)
+        assert signed_rank_p((e0 - e1) @ w) > level
+        assert gain_p(lib[0], e0, e1, w) < level
+        sel = ForwardCVSelector().fit(lib, keys, grams, w, ctx, start=[body]).selected_
+        assert [(e.name, e.index) for e in sel[1:]] == [("coulomb_friction", 0)]
+    for seed in range(6):
+        ctx, body, lib, keys, grams = _shared_body_case(seed, amp=0.0)
+        assert ForwardCVSelector().fit(lib, keys, grams, w, ctx, start=[body]).selected_ == [body]

@@ -11,7 +11,8 @@ import pytest
 
 from mmgp.data.logs import RobotLog
 from mmgp.diagnosis import Diagnoser
-from mmgp.diagnosis.plausibility import fit_warnings, implausible, limit_warnings, velocity_warnings
+from mmgp.diagnosis.plausibility import (MIN_TORQUE_SHARE, check, fit_warnings, implausible, limit_warnings,
+                                        velocity_warnings)
 from mmgp.physics.robot import RobotModel, robot_urdf_path
 
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
@@ -115,6 +116,30 @@ def test_right_inputs_find_the_friction_without_warnings(panda, friction_log):
     res = _diagnose(friction_log, panda)
     assert res.warnings == []
     assert ("coulomb_friction", "panda_joint4") in {(f["effect"], f.get("joint")) for f in res.findings}
+
+
+def test_torque_share_is_the_effects_torque_over_the_joints_spread(panda, friction_log):
+    """The finding's torque share against its own closed form: 1.5 N*m * RMS(tanh(dq / v_s)) over
+    the joint torque's standard deviation (the diagnosis low-passes both; within 5%)."""
+    res = _diagnose(friction_log, panda)
+    f = next(f for f in res.findings if f["effect"] == "coulomb_friction" and f["joint"] == "panda_joint4")
+    tau_c, vs = f["params"]["tau_c"], res.info["v_s"][3]
+    want = tau_c * np.sqrt(np.mean(np.tanh(friction_log.dq[:, 3] / vs) ** 2)) / friction_log.tau[:, 3].std()
+    assert f["evidence"]["torque_share"] == pytest.approx(want, rel=0.05)
+    assert f["evidence"]["torque_share"] > MIN_TORQUE_SHARE
+
+
+def test_findings_too_small_to_name_are_withheld_without_a_warning(panda, urdf_limits):
+    t, q, dq, ddq = _trajectory(urdf_limits, T=300)
+    fit = {"nominal": {"nmse": {n: 0.1 for n in NAMES}}, "with_physics": {"nmse": {n: 0.01 for n in NAMES}}}
+    small = {"effect": "armature", "joint": "panda_joint1", "params": {"inertia": 0.009},
+             "evidence": {"torque_share": 0.6 * MIN_TORQUE_SHARE}}
+    big = {"effect": "armature", "joint": "panda_joint2", "params": {"inertia": 0.09},
+           "evidence": {"torque_share": 1.5 * MIN_TORQUE_SHARE}}
+    kept, withheld, warnings = check([small, big], fit, NAMES, panda.pin_model, q=q, dq=dq, t=t, dq_logged=True)
+    assert kept == [big] and warnings == []
+    assert [w["joint"] for w in withheld] == ["panda_joint1"]
+    assert "0.3% of the joint torque's spread" in withheld[0]["withheld_because"]
 
 
 @pytest.mark.parametrize("wrong", ["degrees", "swapped", "noise", "robot"])

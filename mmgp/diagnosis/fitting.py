@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..physics.context import Context
-from .selection import FoldGrams, atom_indices, own_gain, signed_rank_p
+from .selection import FoldGrams, atom_indices, gain_p, own_gain
 
 #: bootstrap replicates and the interval's coverage
 N_BOOT = 200
@@ -189,18 +189,20 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
     with them, per fold; and the joint it helps most."""
     index = {a: i for i, a in enumerate(phys.keys)}
     ctx, K, names = phys.ctx, phys.grams.K, phys.ctx.joint_names
-    err_wo, _, d = own_gain(e, phys.chosen, index, phys.grams, phys.w)
+    err_wo, err_with, d = own_gain(e, phys.chosen, index, phys.grams, phys.w)
     per_joint = 1 - err_phys.sum(0) / np.maximum(err_wo.sum(0), 1e-300)
     aff = e.affected_joints(ctx)
     jmain = max(aff, key=lambda j: per_joint[j]) if aff else int(np.argmax(per_joint))
+    judged = ("on its own joint and on the joint-weighted sum, the smaller p doubled; the weighted total not raised"
+              if e.own_joint else "joint-weighted sum")
     ev = {"cv_error_reduction": float(per_joint[jmain]),
           "cv_error_reduction_joint": names[jmain],
           "cv_error_reduction_per_joint": {names[j]: float(per_joint[j]) for j in aff},
           "cv_improvement_in_se": float(d.mean() / (d.std(ddof=1) / np.sqrt(K) + 1e-300)),
-          "p_value_without_it": signed_rank_p(d),
+          "p_value_without_it": gain_p(e, err_wo, err_with, phys.w),
           "selection_step": phys.chosen.index(e) + 1,
           "criterion": f"{K}-fold time-block CV, one-sided Wilcoxon signed-rank test of the paired held-out "
-                       f"gains at family-wise level {alpha:g} (Bonferroni over each step's candidates); kept "
+                       f"gains ({judged}) at family-wise level {alpha:g} (Bonferroni over each step's candidates); kept "
                        "only while its own gain stays significant"}
     ext = [o.name for o in phys.chosen if o is not e and o.index == e.index and o.name in e.requires]
     if ext:
@@ -208,9 +210,23 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
     return ev, jmain
 
 
-def effect_findings(phys: PhysicsFit, *, alpha: float) -> list[dict]:
+def torque_share(phys: PhysicsFit, e, torque_sd: np.ndarray) -> float:
+    """How large effect ``e``'s fitted torque is: the largest, over the joints it acts on, of its
+    RMS (low-passed columns, every sample) over the joint torque's standard deviation
+    ``torque_sd`` (n,) N*m."""
+    index = {a: i for i, a in enumerate(phys.keys)}
+    S = atom_indices([e], index)
+    coef = phys.coefficients()
+    tq = phys.A[:, :, S] @ np.array([coef.get(phys.keys[i], 0.0) for i in S])
+    share = np.sqrt((tq ** 2).mean(0)) / np.maximum(torque_sd, 1e-300)
+    joints = e.affected_joints(phys.ctx) or list(range(len(share)))
+    return float(share[joints].max())
+
+
+def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | None = None) -> list[dict]:
     """One finding per chosen effect that no other chosen effect contains, with its held-out
-    evidence, standard deviations and block-bootstrap intervals."""
+    evidence, standard deviations and block-bootstrap intervals (and, given each joint torque's
+    standard deviation ``torque_sd`` (n,), its ``torque_share``)."""
     from .result import effect_finding
 
     err_phys = phys.grams.cv_errors(phys.S, phys.w)
@@ -222,6 +238,8 @@ def effect_findings(phys: PhysicsFit, *, alpha: float) -> list[dict]:
         if not e.name or any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
             continue
         ev, jmain = _evidence(phys, e, err_phys, alpha)
+        if torque_sd is not None:
+            ev["torque_share"] = torque_share(phys, e, torque_sd)
         params, std = e.params(coef, cov)
         ev = {**ev, "params_std": std, "params_interval": parameter_intervals(e, phys, params),
               "interval_level": LEVEL, "interval_method": f"block bootstrap over the {phys.grams.K} time blocks, "

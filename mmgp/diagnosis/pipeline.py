@@ -9,8 +9,9 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
 1. *Locate*: residual ``r = tau - tau_rbd(q, dq, ddq)`` per joint; where it concentrates (near
    zero velocity, high load, position/acceleration ranges, time spans). Residual and every
    regressor column are low-passed alike (parallel filtering). A joint's equation is left out
-   where its velocity is within noise of zero (``valid_mask``): stuck, static friction is
-   set-valued, and fitting it would feed look-alike effects.
+   where its velocity stays within noise of zero (``valid_mask``): stuck, static friction is
+   set-valued, and fitting it would feed look-alike effects. A joint only passing through zero
+   velocity (a reversal, shorter than a tenth of the filter's cutoff period) is not stuck.
 2. *Separate* pushes before naming anything: a robust (Huber then Tukey IRLS) fit of the whole
    library gives sample weights with pushes at zero; effects are selected on those weights; the
    residual of the *selected* model is scanned for pushes (chi-square scan at a family-wise
@@ -29,14 +30,18 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    that the learner's GP had absorbed.
 3. *Name*: forward selection on time-block cross-validation (``n_folds`` blocks): an effect is
    added only while the best candidate's paired held-out gain is significant (one-sided
-   Wilcoxon signed-rank test over the blocks) at family-wise level ``alpha`` (Bonferroni over the
+   Wilcoxon signed-rank test over the blocks; an effect on one joint's torque is tested on that
+   joint and on the joint-weighted sum, the smaller p doubled, the weighted total not raised:
+   ``selection.gain_p``) at family-wise level ``alpha`` (Bonferroni over the
    candidates tried at that step); physical constraints must hold; nested effects (load
    dependence in Coulomb friction) are only tried as extensions. No magnitude threshold.
 4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
    GP (``mmgp.gp.exact.ExactGP``) on what is left; held-out normalised MSE per joint at three
    stages. Mode switches: one vs two payload modes per link (sticky two-state switching
    regression, HMM predictive from samples a filter memory earlier, on held-out blocks).
-5. *Tell*: findings per CONTRACT section 2/3, a Markdown report and residual plots.
+5. *Tell*: findings per CONTRACT section 2/3 (a finding whose torque stays under half a percent of
+   its joint torque's spread is withheld as too small to name: ``plausibility.MIN_TORQUE_SHARE``),
+   a Markdown report and residual plots.
 
 Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
 """
@@ -105,9 +110,10 @@ class Diagnoser(BaseEstimator):
         least 2) and the most samples it sees (evenly thinned in time).
     em_gate_peak: scanned spans peaking at this many times the scan threshold are kept without
         the learner's confirmation.
-    rest_factor: a joint's equation is left out where |dq| < rest_factor * v_s (the velocity is
-        within noise of zero, widened by the filter's memory): at rest friction takes any value
-        in [-tau_c, tau_c] (stiction), which no function of the state can fit.
+    rest_factor: a joint's equation is left out where |dq| < rest_factor * v_s for at least a
+        tenth of the filter's cutoff period (the velocity stays within noise of zero; widened by
+        the filter's memory): at rest friction takes any value in [-tau_c, tau_c] (stiction),
+        which no function of the state can fit.
     sign_noise_factor: v_s = this times the velocity noise (smooth sign of Coulomb friction).
     lowpass: low-pass residual and regressor columns alike (parallel filtering) at a cutoff set
         by the trajectory's bandwidth, so noise in estimated accelerations does not bias the fit.
@@ -247,7 +253,7 @@ class Diagnoser(BaseEstimator):
                 pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
                 use = ~pushes.disturbed & ~near
             laps("reselect_s")
-        findings = effect_findings(phys, alpha=self.alpha)
+        findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(st.torque_variance(prob, use)))
         for f in findings:
             if f["effect"] == "inertial_parameters":
                 f["evidence"].update(identifiability=rb_ev, reidentification=reid)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.outputs import jsonable
+from .plausibility import MIN_TORQUE_SHARE
 
 STAGES = ("nominal", "with_physics", "with_physics_and_gp")
 WHOLE_LOG = ("external_disturbance", "mode_switch")
@@ -110,8 +111,10 @@ class DiagnosisResult:
         effects = [f for f in self.findings if f["effect"] not in WHOLE_LOG]
         lines = ["# Sim-vs-real diagnosis", ""]
         if self.warnings:
-            lines += ["## Warnings", ""] + [f"- **{w}**" for w in self.warnings]
-            lines += [f"- withheld: {f['explanation']} ({f['withheld_because']})" for f in self.withheld] + [""]
+            lines += ["## Warnings", ""] + [f"- **{w}**" for w in self.warnings] + [""]
+        if self.withheld:
+            lines += ["## Withheld findings", ""]
+            lines += [f"- {f['explanation']} ({f['withheld_because']})" for f in self.withheld] + [""]
         if not effects and self.warnings:
             lines.append("No finding is reported: the warnings above say why the numbers cannot be trusted.")
         elif not effects:
@@ -132,7 +135,10 @@ class DiagnosisResult:
         lines += ["", "## Method", "",
                   f"Candidates: {self.info.get('n_candidates')} effects. Forward selection on {self.info.get('n_folds')} "
                   "time blocks: an effect is added while its paired held-out gain is significant (one-sided "
-                  "Wilcoxon signed-rank test over the blocks, Bonferroni over the candidates of each step); "
+                  "Wilcoxon signed-rank test over the blocks, Bonferroni over the candidates of each step; an "
+                  "effect on one joint's torque is tested on that joint and on all joints, the smaller p doubled); "
+                  f"a finding whose torque is under {100 * MIN_TORQUE_SHARE:g}% of its joint torque's spread is "
+                  "withheld as too small; "
                   "parameters by non-negative least squares on all undisturbed samples, standard deviations by "
                   "block jackknife over the folds. Coulomb friction uses tanh(dq/v_s), v_s = "
                   f"{self.info.get('sign_noise_factor')} x velocity noise: "

@@ -65,7 +65,8 @@ class Effect:
     ``linearised`` (columns depend on a point re-estimated from the fit: :meth:`relinearise`),
     ``switchable`` (may take one of two values over the log: a mode-switch candidate),
     ``sensor`` (an artefact of the logged signals, not a torque the joint transmits: left out of
-    the load that load-dependent friction scales with).
+    the load that load-dependent friction scales with), ``own_joint`` (its columns act on joint
+    ``index``'s torque alone: its held-out gain is judged on that joint, ``selection.paired_gains``).
 
     By default parameter i is the coefficient of atom i (``params``/``coefficients``); effects
     with another map override both.
@@ -81,6 +82,7 @@ class Effect:
     linearised: ClassVar[bool] = False
     switchable: ClassVar[bool] = False
     sensor: ClassVar[bool] = False
+    own_joint: ClassVar[bool] = False
 
     def __init_subclass__(cls, **declared):
         # a one-column effect is declared in its class statement: name=, label=, units=, kind=
@@ -184,6 +186,7 @@ class _JointColumnEffect(Effect):
 
     kind: ClassVar[str] = ""
     nonnegative: ClassVar[bool] = True
+    own_joint = True
 
     def atoms(self):
         return ((self.kind, self.index),)
@@ -223,6 +226,7 @@ class LoadDependentFriction(Effect):
     label = "load-dependent friction"
     units = {"tau_c": "N*m", "beta": ""}
     supersedes = ("coulomb_friction",)
+    own_joint = True
     # nested: load dependence is tested only as an extension of Coulomb friction on the joint,
     # so small Coulomb friction is not reported as load-dependent because one step added both
     requires = ("coulomb_friction",)
@@ -253,6 +257,7 @@ class JointSpring(Effect):
     label = "a joint spring"
     units = {"k": "N*m/rad", "q0": "rad"}
     supersedes = ("torque_offset",)
+    own_joint = True
 
     def atoms(self):
         return (("q", self.index), ("one", self.index))
