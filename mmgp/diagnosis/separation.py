@@ -51,7 +51,8 @@ def rest_runs(rest: np.ndarray, min_len: int) -> np.ndarray:
     return kept
 
 
-def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None, *, factor: float = 1.0) -> np.ndarray:
+def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None, *, factor: float = 1.0,
+               min_rest_periods: float = 0.1) -> np.ndarray:
     """(T, n) 1.0 where joint j's equation carries information a state function can fit, else 0.
 
     A joint whose velocity is within ``factor * v_s`` of zero (``v_s`` = 3 velocity-noise
@@ -64,7 +65,7 @@ def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None
     A joint that only passes through zero velocity (a reversal: a few milliseconds within the
     band) is not at rest: its friction follows the sliding law through the turn, and after the
     filter so short a stretch weighs little. With a filter, only stays of at least a tenth of the
-    cutoff period count as rest (``rest_runs``). Widening every reversal by the filter's memory
+    cutoff period (``min_rest_periods``; 0: every stay) count as rest (``rest_runs``). Widening every reversal by the filter's memory
     left 38% of the real Panda's equations (a 21 s Fourier excitation, cutoff 0.88 Hz, every
     stay within the band shorter than 0.1 s), and with them went the reversals that tell Coulomb
     friction from offsets and gravity.
@@ -73,7 +74,7 @@ def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None
     rest = np.abs(dq) < factor * np.asarray(v_s)[None, :]
     if f_c:
         dt = float(np.median(np.diff(t)))
-        rest = rest_runs(rest, int(round(0.1 / (f_c * dt))))
+        rest = rest_runs(rest, int(round(min_rest_periods / (f_c * dt))))
         h = int(round(0.5 / (f_c * dt)))
         if h > 0:
             from scipy.ndimage import maximum_filter1d

@@ -32,7 +32,11 @@ from .selection import FoldGrams, atom_indices, time_folds
 class Problem:
     """What every stage reads: the (thinned) log's arrays, (T, n); ``r_raw`` = tau - tau_rbd and
     ``r`` its low-passed copy (N*m); ``lowpass`` the filter applied to ``r`` and to every column,
-    ``f_c`` its cutoff (Hz, None: none); ``M`` (T, n) valid equations; ``folds`` time blocks;
+    ``f_c`` its cutoff (Hz, None: none); ``M`` (T, n) valid equations; ``M_scan`` (T, n) where
+    pushes are looked for: ``M`` less every passage through zero velocity and the filter's memory
+    around it, since there the friction law's transition, which tanh(dq / v_s) only approximates,
+    leaves a misfit that is no external force (a lever whose friction turns over 0.02 rad/s, ours
+    over 0.008: 0.5-0.7 s "pushes" at its reversals); ``folds`` time blocks;
     ``library`` the candidate effects; ``ctx`` the nominal Context; ``n_samples_in_log``;
     ``smear_s`` how far (s) estimated derivatives spread a sudden change (0 when logged)."""
 
@@ -44,6 +48,7 @@ class Problem:
     lowpass: Callable[[np.ndarray], np.ndarray]
     f_c: float | None
     M: np.ndarray
+    M_scan: np.ndarray
     folds: list
     library: list
     n_samples_in_log: int
@@ -108,7 +113,9 @@ def build_problem(log: RobotLog, robot, n_samples_in_log: int, smear_s: float, *
     r_raw = log.tau - ctx.tau_rbd
     lp, f_c = lowpass_for(t, dq) if lowpass else (identity, None)
     return Problem(t=t, tau=log.tau, ctx=ctx, r_raw=r_raw, r=lp(r_raw), lowpass=lp, f_c=f_c,
-                   M=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor), folds=time_folds(len(t), n_folds, t, f_c),
+                   M=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor),
+                   M_scan=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor, min_rest_periods=0.0),
+                   folds=time_folds(len(t), n_folds, t, f_c),
                    library=library,
                    n_samples_in_log=n_samples_in_log, smear_s=smear_s)
 
@@ -254,7 +261,7 @@ def separate_pushes(prob: Problem, lib: LibraryFit, selector, *, method: str, pu
     chosen = selector.fit(candidates(prob, start), lib.keys, g0, w0, lib.ctx, start=start).selected_
     S0 = atom_indices(chosen, {a: i for i, a in enumerate(lib.keys)})
     e0 = prob.r - (lib.A[:, :, S0] @ g0.fit(S0, w0) if S0 else 0.0)
-    disturbed, scan = sep.scan_disturbances(e0, prob.t, f_c=prob.f_c, valid=prob.M > 0, alpha=push_alpha)
+    disturbed, scan = sep.scan_disturbances(e0, prob.t, f_c=prob.f_c, valid=prob.M_scan > 0, alpha=push_alpha)
     info = {**info, **scan}
     em = None
     if method == "auto" and disturbed.any():
@@ -345,7 +352,7 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
     index = {a: i for i, a in enumerate(phys.keys)}
     C = phys.A[:, :, [index[a] for a in ms.effect.atoms()]]
     e = phys.residual(prob.r) - mode_prediction(ms, C)
-    valid = (prob.M > 0) & ~near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)[:, None]
+    valid = (prob.M_scan > 0) & ~near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)[:, None]
     disturbed, scan = sep.scan_disturbances(e, prob.t, f_c=prob.f_c, valid=valid, alpha=push_alpha)
     info, em = {**previous.info, **scan}, previous.em
     if method == "auto" and disturbed.any():
@@ -361,7 +368,7 @@ def confirm_pushes(prob: Problem, phys: PhysicsFit, previous: Separation, near: 
     (the modes' own bodies in it) still shows it: a stretch that one mode's point-mass payload
     left unexplained but the mode's body explains was not a push. ``near`` (T,) bool: samples
     within a filter memory of a mode switch (left out of the scan)."""
-    valid = (prob.M > 0) & ~near[:, None]
+    valid = (prob.M_scan > 0) & ~near[:, None]
     flagged, scan = sep.scan_disturbances(phys.residual(prob.r), prob.t, f_c=prob.f_c, valid=valid, alpha=push_alpha)
     kept = np.zeros_like(previous.disturbed)
     for a, b in sep.runs(previous.disturbed):
