@@ -14,7 +14,8 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    velocity (a reversal, shorter than a tenth of the filter's cutoff period) is not stuck.
 2. *Separate* pushes before naming anything: a robust (Huber then Tukey IRLS) fit of the whole
    library gives sample weights with pushes at zero; effects are selected on those weights; the
-   residual of the *selected* model is scanned for pushes (chi-square scan at a family-wise
+   residual of the *selected* model is scanned for pushes, away from every passage through zero
+   velocity, where the friction law's transition is least certain (chi-square scan at a family-wise
    level over the log's independent samples; excursions shorter than the filter's resolution
    are not events). The multimodal learner (``MultimodalSEM``, disturbance mode on, GP inputs
    ``[q, dq, ddq, tanh(dq/v_s)]``, on <= ``em_points`` samples of ``tau - tau_rbd`` evenly spaced
