@@ -202,8 +202,8 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
           "p_value_without_it": gain_p(e, err_wo, err_with, phys.w),
           "selection_step": phys.chosen.index(e) + 1,
           "criterion": f"{K}-fold time-block CV, one-sided Wilcoxon signed-rank test of the paired held-out "
-                       f"gains ({judged}) at family-wise level {alpha:g} (Bonferroni over each step's candidates); kept "
-                       "only while its own gain stays significant"}
+                       f"gains ({judged}) at family-wise level {alpha:g} (Bonferroni over each step's "
+                       "candidates); kept only while its own gain stays significant"}
     ext = [o.name for o in phys.chosen if o is not e and o.index == e.index and o.name in e.requires]
     if ext:
         ev["judged_against"] = ext[0]
