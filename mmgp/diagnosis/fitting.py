@@ -210,13 +210,11 @@ def _evidence(phys: PhysicsFit, e, err_phys: np.ndarray, alpha: float) -> tuple[
     return ev, jmain
 
 
-def torque_share(phys: PhysicsFit, e, torque_sd: np.ndarray) -> float:
-    """How large effect ``e``'s fitted torque is: the largest, over the joints it acts on, of its
-    RMS (low-passed columns, every sample) over the joint torque's standard deviation
-    ``torque_sd`` (n,) N*m."""
-    index = {a: i for i, a in enumerate(phys.keys)}
-    S = atom_indices([e], index)
-    coef = phys.coefficients()
+def torque_share(phys: PhysicsFit, e, coef: dict, torque_sd: np.ndarray) -> float:
+    """How large effect ``e``'s fitted torque is (``coef``: the fit's atom -> coefficient): the
+    largest, over the joints it acts on, of its RMS (low-passed columns, every sample) over the
+    joint torque's standard deviation ``torque_sd`` (n,) N*m."""
+    S = atom_indices([e], {a: i for i, a in enumerate(phys.keys)})
     tq = phys.A[:, :, S] @ np.array([coef.get(phys.keys[i], 0.0) for i in S])
     share = np.sqrt((tq ** 2).mean(0)) / np.maximum(torque_sd, 1e-300)
     joints = e.affected_joints(phys.ctx) or list(range(len(share)))
@@ -239,7 +237,7 @@ def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | N
             continue
         ev, jmain = _evidence(phys, e, err_phys, alpha)
         if torque_sd is not None:
-            ev["torque_share"] = torque_share(phys, e, torque_sd)
+            ev["torque_share"] = torque_share(phys, e, coef, torque_sd)
         params, std = e.params(coef, cov)
         ev = {**ev, "params_std": std, "params_interval": parameter_intervals(e, phys, params),
               "interval_level": LEVEL, "interval_method": f"block bootstrap over the {phys.grams.K} time blocks, "

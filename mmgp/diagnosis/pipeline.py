@@ -254,11 +254,12 @@ class Diagnoser(BaseEstimator):
                 pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
                 use = ~pushes.disturbed & ~near
             laps("reselect_s")
-        findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(st.torque_variance(prob, use)))
+        denom = st.torque_variance(prob, use)  # (n,) what the held-out errors and the findings' sizes are relative to
+        findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(denom))
         for f in findings:
             if f["effect"] == "inertial_parameters":
                 f["evidence"].update(identifiability=rb_ev, reidentification=reid)
-        fit = self._stage_errors(prob, phys, use, laps)
+        fit = self._stage_errors(prob, phys, use, denom, laps)
         if ms is not None:
             findings += mode_effect_findings(ms, phys.ctx)
             findings.append(mode_switch_finding(ms, phys.ctx, alpha=self.alpha, n_folds=self.mode_folds))
@@ -294,8 +295,7 @@ class Diagnoser(BaseEstimator):
             phys = phys.with_coefficients(coef)
         return phys, selector, dropped, rb_ev
 
-    def _stage_errors(self, prob, phys, use, laps) -> dict:
-        denom = st.torque_variance(prob, use)
+    def _stage_errors(self, prob, phys, use, denom, laps) -> dict:
         fit = st.stage_errors(prob, phys, use, denom)
         laps("fit_s")
         if self.gp:

@@ -127,8 +127,9 @@ class MultimodalSEM:
     rest_band : with ``rest`` in ``fit`` (a :class:`.mstep.RestBand`), a joint at rest may be
         stuck and hold any torque within its friction band: its undisturbed density is, with
         the rest weight, uniform over the band (the model's own friction,
-        :meth:`.mstep.ModeFitter.friction_band`) blurred by the predictive spread (:func:`.mstep.at_rest_logpdf`); the scan does not average where the
-        band is wider than that spread. On the issue-10 tuning levers stuck holds and velocity
+        :meth:`.mstep.ModeFitter.friction_band`) blurred by the predictive spread
+        (:func:`.mstep.at_rest_logpdf`); the scan does not average where the band is wider than
+        that spread. On the issue-10 tuning levers stuck holds and velocity
         reversals were the false alarms (docs/training.md, "A stuck joint holds any torque in
         its friction band").
     start_trim : fractions of the samples kept by the successive refits of the start.
