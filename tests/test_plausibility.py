@@ -142,6 +142,18 @@ def test_findings_too_small_to_name_are_withheld_without_a_warning(panda, urdf_l
     assert "0.3% of the joint torque's spread" in withheld[0]["withheld_because"]
 
 
+def test_a_dead_band_torque_channel_is_warned_about_and_findings_kept(panda, urdf_limits):
+    t, q, dq, ddq = _trajectory(urdf_limits, T=300)
+    fit = {"nominal": {"nmse": {n: 0.1 for n in NAMES}}, "with_physics": {"nmse": {n: 0.01 for n in NAMES}}}
+    big = {"effect": "armature", "joint": "panda_joint2", "params": {"inertia": 0.09},
+           "evidence": {"torque_share": 1.5 * MIN_TORQUE_SHARE}}
+    tau = np.sin(np.arange(300)[:, None] * 0.05 + np.arange(7)[None, :])
+    tau[:, 6] = np.where(np.abs(tau[:, 6]) < 0.8, 0.0, tau[:, 6])      # joint 7: 0 below 0.8 N*m
+    kept, withheld, warnings = check([big], fit, NAMES, panda.pin_model, q=q, dq=dq, t=t, dq_logged=True, tau=tau)
+    assert kept == [big] and withheld == []
+    assert len(warnings) == 1 and warnings[0].startswith(f"{NAMES[6]}: the torque reads exactly 0 on ")
+
+
 @pytest.mark.parametrize("wrong", ["degrees", "swapped", "noise", "robot"])
 def test_wrong_inputs_give_warnings_and_no_finding(panda, friction_log, wrong):
     log, robot = friction_log, panda

@@ -119,6 +119,8 @@ def train(logs: List[Path] = logs_argument(),
     except InputError as exc:
         _fail(exc)
     typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots, report.html.")
+    for line in model.report_.get("warnings", []):
+        typer.echo(f"warning: {line}", err=True)
 
 
 def _check_model_device(model, model_dir: Path) -> None:

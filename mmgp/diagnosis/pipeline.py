@@ -402,7 +402,7 @@ def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
 
     dq_logged = log.dq is not None and not getattr(log, "dq_estimated", False)
     kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot), q=log.q, dq=log.dq,
-                                     t=log.t, dq_logged=dq_logged)
+                                     t=log.t, dq_logged=dq_logged, tau=log.tau)
     return dataclasses.replace(res, findings=kept, withheld=withheld, warnings=warnings)
 
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..data.channels import dead_band_warnings
+
 #: angles beyond the model's limits by more than this (rad) count as violations
 LIMIT_MARGIN = 0.05
 #: share of the samples beyond the limits that makes a warning
@@ -168,12 +170,15 @@ def immaterial(finding: dict) -> str | None:
             f"below {100 * MIN_TORQUE_SHARE:g}%")
 
 
-def check(findings: list, fit: dict, names: list, model, *, q, dq, t, dq_logged: bool):
-    """(kept findings, withheld findings each with its ``withheld_because``, warnings)."""
+def check(findings: list, fit: dict, names: list, model, *, q, dq, t, dq_logged: bool, tau=None):
+    """(kept findings, withheld findings each with its ``withheld_because``, warnings); ``tau``
+    (T, n) the logged torques, for the dead-band check (a warning only: it concerns one joint)."""
     warnings = limit_warnings(q, model, names)
     if dq_logged:
         warnings += velocity_warnings(t, q, dq, names)
     inputs_bad = bool(warnings)
+    if tau is not None:
+        warnings += dead_band_warnings(tau, names)
     fw, bad = fit_warnings(fit, names)
     warnings += fw
     kept, withheld = [], []

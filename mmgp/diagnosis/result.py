@@ -116,7 +116,7 @@ class DiagnosisResult:
             lines += ["## Withheld findings", ""]
             lines += [f"- {f['explanation']} ({f['withheld_because']})" for f in self.withheld] + [""]
         if not effects and self.warnings:
-            lines.append("No finding is reported: the warnings above say why the numbers cannot be trusted.")
+            lines.append("No finding is reported: the warnings above say what limits the numbers.")
         elif not effects:
             lines.append("Nothing is missing: no candidate effect improves the held-out (time-block "
                          "cross-validated) error significantly over the nominal model.")
@@ -173,7 +173,7 @@ class DiagnosisResult:
 
         page = HtmlReport("mmgp diagnose", subtitle=f"{self.info.get('n_samples')} samples analysed")
         if self.warnings:
-            page.section("Warnings", "The numbers below cannot be trusted as they stand:")
+            page.section("Warnings", "What limits the numbers below:")
             page.table(["warning"], [[w] for w in self.warnings], kind="warnings")
             if self.withheld:
                 page.table(["withheld finding", "because"],

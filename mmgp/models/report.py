@@ -7,6 +7,7 @@ from typing import Sequence
 import numpy as np
 
 from .._version import __version__
+from ..data.channels import dead_band_warnings
 from ..data.logs import RobotLog
 from .features import input_names
 
@@ -26,6 +27,7 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
         "derivatives_estimated": {"dq": any(lg.dq_estimated for lg in logs),
                                   "ddq": any(lg.ddq_estimated for lg in logs)},
         "robot": robot_spec,
+        "warnings": dead_band_warnings(np.concatenate([lg.tau for lg in logs]), joint_names),
         "semiparametric": semiparametric,
         # The per-mode coefficients themselves are in model.npz (basis_coef_<k>).
         "mean_basis": {"kind": basis_kind, "rank": int(sem.basis_rank_)},

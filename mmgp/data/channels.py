@@ -1,0 +1,34 @@
+"""What a logged torque channel can resolve.
+
+A drive that reports its torque from the motor current may report exactly zero below a
+threshold (a dead band): the real TIAGo's arm joints 5-7 read exactly 0.0 N*m on 88-90% of the
+identification log's samples and +-0.02 to +-0.45 N*m otherwise. A model of such a channel learns
+the zeros almost exactly, so every non-zero reading stands tens of standard deviations off; the
+user is told rather than left to read those as pushes or effects.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: A channel is called dead-banded when one exact reading covers at least this share of samples.
+DEAD_BAND_SHARE = 0.5
+
+
+def dead_band_warnings(tau: np.ndarray, names: list) -> list[str]:
+    """One warning per joint of ``tau`` (T, n) whose most frequent exact reading covers at least
+    :data:`DEAD_BAND_SHARE` of the samples while other readings exist (a constant channel is not
+    warned about here); ``names`` (n,) the joint names."""
+    out = []
+    for j in range(tau.shape[1]):
+        values, counts = np.unique(tau[:, j], return_counts=True)
+        i = int(counts.argmax())
+        share = counts[i] / len(tau)
+        if share < DEAD_BAND_SHARE or len(values) < 2:
+            continue
+        others = np.abs(np.delete(values, i) - values[i])
+        out.append(f"{names[j]}: the torque reads exactly {values[i]:.6g} on {100 * share:.0f}% of the samples "
+                   f"(the other readings lie {others.min():.3g} to {others.max():.3g} away, median of the samples "
+                   f"{np.median(np.abs(tau[tau[:, j] != values[i], j] - values[i])):.3g}): a dead band or a stuck "
+                   "channel; what is smaller than that on this joint cannot be seen, and its other readings "
+                   "may be flagged as pushes")
+    return out
