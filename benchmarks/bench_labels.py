@@ -19,6 +19,8 @@ seeds and the spread of unperturbed correct and perturbed missed; the worst over
 the fraction flagged on logs without pushes; modes and mode ARI; a reliability table of
 p_disturbed (predicted vs observed frequency of "significant" on judged samples); seconds.
 
+Peers' packages: ``pip install -e ".[peers]"`` (robustgp, botorch).
+
 Usage: python benchmarks/bench_labels.py [--sets replica,tuning,validation] [--methods mmgp,source]
        [--seeds-1dof 10] [--seeds-arm 3] [--only val01,...] [--modes-auto] [--json FILE]
 """
