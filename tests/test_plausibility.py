@@ -148,7 +148,7 @@ def test_a_dead_band_torque_channel_is_warned_about_and_findings_kept(panda, urd
     big = {"effect": "armature", "joint": "panda_joint2", "params": {"inertia": 0.09},
            "evidence": {"torque_share": 1.5 * MIN_TORQUE_SHARE}}
     tau = np.sin(np.arange(300)[:, None] * 0.05 + np.arange(7)[None, :])
-    tau[:, 6] = np.where(np.abs(tau[:, 6]) < 0.8, 0.0, tau[:, 6])      # joint 7: 0 below 0.8 N*m
+    tau[:, 6] = np.where(np.abs(tau[:, 6]) < 0.8, -0.0, tau[:, 6])     # joint 7: 0 below 0.8 N*m (as -0.0)
     kept, withheld, warnings = check([big], fit, NAMES, panda.pin_model, q=q, dq=dq, t=t, dq_logged=True, tau=tau)
     assert kept == [big] and withheld == []
     assert len(warnings) == 1 and warnings[0].startswith(f"{NAMES[6]}: the torque reads exactly 0 on ")
