@@ -25,10 +25,10 @@ def dead_band_warnings(tau: np.ndarray, names: list) -> list[str]:
         share = counts[i] / len(tau)
         if share < DEAD_BAND_SHARE or len(values) < 2:
             continue
-        others = np.abs(np.delete(values, i) - values[i])
-        out.append(f"{names[j]}: the torque reads exactly {values[i] + 0.0:.6g} on {100 * share:.0f}% of the samples "
-                   f"(the other readings lie {others.min():.3g} to {others.max():.3g} away, median of the samples "
-                   f"{np.median(np.abs(tau[tau[:, j] != values[i], j] - values[i])):.3g}): a dead band or a stuck "
-                   "channel; what is smaller than that on this joint cannot be seen, and its other readings "
-                   "may be flagged as pushes")
+        v = values[i] + 0.0                          # + 0.0: a channel stuck at -0.0 reads "0"
+        off = np.abs(tau[tau[:, j] != values[i], j] - v)
+        out.append(f"{names[j]}: the torque reads exactly {v:.6g} on {100 * share:.0f}% of the samples (its other "
+                   f"readings lie {off.min():.3g} to {off.max():.3g} away, median {np.median(off):.3g}): a dead "
+                   "band or a stuck channel; what is smaller than that on this joint cannot be seen, and its "
+                   "other readings may be flagged as pushes")
     return out
