@@ -32,24 +32,12 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def longest_run(flags: np.ndarray) -> int:
-    """Length of the longest run of True in ``flags`` (T,)."""
-    best = cur = 0
-    for f in flags:
-        cur = cur + 1 if f else 0
-        best = max(best, cur)
-    return best
-
-
-def dead_band_share(tau: np.ndarray) -> np.ndarray:
-    """(n,) the share of samples at each joint's most frequent exact torque reading."""
-    return np.array([np.unique(tau[:, j], return_counts=True)[1].max() / len(tau) for j in range(tau.shape[1])])
-
-
 def run(name: str, tmp: Path, gp3_max: int) -> None:
     from baselines import threshold_gp_labels
     from bench_diagnose_real import convert_log
     from mmgp import MultimodalGP
+    from mmgp.data.channels import modal_reading
+    from mmgp.diagnosis.separation import runs
     from mmgp.physics.context import smooth_sign_scale
 
     path = convert_log(name, tmp)
@@ -62,14 +50,15 @@ def run(name: str, tmp: Path, gp3_max: int) -> None:
     rest = np.abs(lg.dq) < smooth_sign_scale(lg.dq)[None, :]
     last = m.sem_.last_sweep_
     z = np.abs(feats.Y - last["means"][0]) / np.sqrt(last["vars"][0])
-    top = np.bincount(z[flags].argmax(1), minlength=feats.Y.shape[1]) if flags.any() else np.zeros(feats.Y.shape[1], int)
+    top = np.bincount(z[flags].argmax(1), minlength=feats.Y.shape[1])   # empty flags: zeros
     print(f"\n=== real {name}: {len(flags)} samples at {1 / dt:.0f} Hz, {feats.Y.shape[1]} joints; mmgp {secs:.0f} s")
-    print(f"mmgp flagged {flags.mean():.2%}; longest flagged stretch {longest_run(flags) * dt:.2f} s; of the "
+    longest = max((b - a for a, b in runs(flags)), default=0) * dt
+    print(f"mmgp flagged {flags.mean():.2%}; longest flagged stretch {longest:.2f} s; of the "
           f"flagged samples every joint at rest {rest[flags].all(1).mean() if flags.any() else 0:.0%}, "
           f"some joint at rest {rest[flags].any(1).mean() if flags.any() else 0:.0%}")
     print(f"  joint with the largest |z| at the flagged samples (count per joint): {top.tolist()}")
     print(f"  share of samples at each joint's most frequent exact torque reading: "
-          f"{np.round(dead_band_share(lg.tau), 2).tolist()}")
+          f"{[round(modal_reading(lg.tau[:, j])[1], 2) for j in range(lg.tau.shape[1])]}")
     if len(flags) <= gp3_max:
         t0 = time.perf_counter()
         base = threshold_gp_labels(feats.X, feats.Y)

@@ -14,19 +14,25 @@ import numpy as np
 DEAD_BAND_SHARE = 0.5
 
 
+def modal_reading(x: np.ndarray) -> tuple[float, float, int]:
+    """The most frequent exact value of ``x`` (T,), the share of samples holding it, and how many
+    distinct values ``x`` has."""
+    values, counts = np.unique(x, return_counts=True)
+    i = int(counts.argmax())
+    return float(values[i]), float(counts[i] / len(x)), len(values)
+
+
 def dead_band_warnings(tau: np.ndarray, names: list) -> list[str]:
     """One warning per joint of ``tau`` (T, n) whose most frequent exact reading covers at least
     :data:`DEAD_BAND_SHARE` of the samples while other readings exist (a constant channel is not
     warned about here); ``names`` (n,) the joint names."""
     out = []
     for j in range(tau.shape[1]):
-        values, counts = np.unique(tau[:, j], return_counts=True)
-        i = int(counts.argmax())
-        share = counts[i] / len(tau)
-        if share < DEAD_BAND_SHARE or len(values) < 2:
+        value, share, distinct = modal_reading(tau[:, j])
+        if share < DEAD_BAND_SHARE or distinct < 2:
             continue
-        v = values[i] + 0.0                          # + 0.0: a channel stuck at -0.0 reads "0"
-        off = np.abs(tau[tau[:, j] != values[i], j] - v)
+        v = value + 0.0                              # + 0.0: a channel stuck at -0.0 reads "0"
+        off = np.abs(tau[tau[:, j] != value, j] - v)
         out.append(f"{names[j]}: the torque reads exactly {v:.6g} on {100 * share:.0f}% of the samples (its other "
                    f"readings lie {off.min():.3g} to {off.max():.3g} away, median {np.median(off):.3g}): a dead "
                    "band or a stuck channel; what is smaller than that on this joint cannot be seen, and its "
