@@ -5,6 +5,9 @@ Sets of logs (``--sets``):
 - ``tuning``: family levers (mmgp.sim.family) with seeds TUNING_LEVERS, the set developed on;
 - ``heldout``: family levers HELDOUT_LEVERS and arms HELDOUT_ARMS, drawn once (2026-11-24) and
   scored only at the end;
+- ``holds`` / ``holds-heldout``: push-free Panda logs whose joints all stick during holds
+  (:func:`mmgp.sim.family.push_free_holds`, seeds HOLDS_TUNING / HOLDS_HELDOUT): every flag is a
+  false alarm;
 - ``validation``: every log of ../shared/validation (its truth and its judging rule).
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``source`` (today's
 code set as the source: single-site Gibbs, plain LOO objective, exclusion_s 0, no friction input,
@@ -54,7 +57,11 @@ HELDOUT_LEVERS = (1065281, 1168894, 1194432, 1319587, 1336629, 1349753, 1508402,
 HELDOUT_ARMS = (1904329, 1931962, 1997658)
 # Log length caps (samples) of the benchmark's family logs, for its running time: levers then run
 # at up to 100 Hz for 12-40 s, arms at 100-250 Hz for 30-80 s.
-FAMILY_MAX_SAMPLES = {"lever": 1200, "arm": 8000}
+FAMILY_MAX_SAMPLES = {"lever": 1200, "arm": 8000, "holds": 6000}
+# Push-free Panda logs whose joints all stick in holds (mmgp.sim.family.push_free_holds): tuning
+# seeds (looked at), and held-out seeds drawn once (2026-11-26), to be scored only at the end.
+HOLDS_TUNING = (5001, 5002)
+HOLDS_HELDOUT = (7331, 8447)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -94,16 +101,20 @@ def replica_cases() -> list[Case]:
 
 
 def family_cases(seeds, kind: str, cache: Path) -> list[Case]:
-    from mmgp.sim.family import draw, record, write_scenario
+    from mmgp.sim.family import draw, push_free_holds, record, write_scenario
 
     out = []
     for seed in seeds:
-        spec = draw(seed, kind, max_samples=FAMILY_MAX_SAMPLES["lever" if kind == "lever" else "arm"])
+        if kind == "holds":
+            spec = push_free_holds(seed, max_samples=FAMILY_MAX_SAMPLES["holds"])
+        else:
+            spec = draw(seed, kind, max_samples=FAMILY_MAX_SAMPLES["lever" if kind == "lever" else "arm"])
         stem = f"{kind}{seed}"
         log, lab = cache / f"{stem}.parquet", cache / f"{stem}.labels.parquet"
         if not (log.is_file() and lab.is_file()):
             write_scenario(record(spec), cache, stem)
-        out.append(_case_from_labels(f"{'lever' if kind == 'lever' else spec.robot}{seed}", log, lab,
+        name = {"lever": "lever", "holds": "holds"}.get(kind, spec.robot)
+        out.append(_case_from_labels(f"{name}{seed}", log, lab,
                                      len(spec.joint_names), spec={k: spec.to_dict()[k] for k in
                                                                   ("robot", "rate_hz", "controller", "friction")}))
     return out
@@ -375,6 +386,10 @@ def main(argv=None) -> int:
         cases += family_cases(TUNING_LEVERS, "lever", a.cache)
     if "heldout" in sets:
         cases += family_cases(HELDOUT_LEVERS, "lever", a.cache) + family_cases(HELDOUT_ARMS, "arm", a.cache)
+    if "holds" in sets:
+        cases += family_cases(HOLDS_TUNING, "holds", a.cache)
+    if "holds-heldout" in sets:
+        cases += family_cases(HOLDS_HELDOUT, "holds", a.cache)
     if "validation" in sets:
         cases += validation_cases()
     if only:

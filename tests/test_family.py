@@ -133,3 +133,20 @@ def test_written_scenario_reads_back_as_a_contract_log(tmp_path, kind):
     assert (read_labels(labels, t=lg.t)["disturbed"].to_numpy() == rec.labels["disturbed"].to_numpy()).all()
     if kind == "lever":
         assert (tmp_path / "s11.urdf").is_file()
+
+
+def test_push_free_holds_stick_every_joint_without_pushes():
+    # The push-free arm check: no pushes, no payload, dry friction on every joint, and the holds
+    # really stick: at rest (true velocity exactly zero) MuJoCo's dry-friction force on every joint
+    # reaches at least half its band, i.e. the joint holds torque through friction; no sample is
+    # labelled disturbed.
+    spec = family.push_free_holds(5001, max_samples=1200)
+    assert spec.motion["type"] == "waypoints" and spec.pushes == [] and spec.payload is None
+    knots = np.asarray(spec.motion["q"])
+    assert any(np.array_equal(a, b) for a, b in zip(knots[:-1], knots[1:])), "no hold among the knots"
+    assert min(spec.friction["coulomb"]) >= 0.08 and max(spec.friction["beta"]) == 0.0
+    rec = family.record(spec)
+    stuck = np.abs(rec.info["dq_true"]) < 1e-6
+    held = np.abs(np.asarray(rec.info["tau_constraint"])) / np.asarray(spec.friction["coulomb"])
+    assert all(held[stuck[:, j], j].max() >= 0.5 for j in range(held.shape[1])), held.max(0)
+    assert (rec.labels["disturbed"] == 0).all()

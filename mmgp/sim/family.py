@@ -361,6 +361,27 @@ def draw(seed: int, kind: str = "lever", *, max_samples: int | None = None) -> S
     return _draw_arm(rng, int(seed), kind, max_samples or 16000)
 
 
+def push_free_holds(seed: int, robot: str = "panda", *, coulomb_frac: float = 0.08,
+                    max_samples: int = 6000) -> ScenarioSpec:
+    """A log without pushes in which every joint sticks: the first waypoint scenario of ``robot``
+    drawn from ``seed`` on (moves alternating with holds), without pushes or payload, with Coulomb
+    friction of ``coulomb_frac`` of each joint's torque scale on every joint (no load-dependent
+    part). Why: the family's arms rarely stop with dry friction on every joint, yet a held joint
+    holds any torque within its band and is the false alarm a real arm gives (real TIAGo); this is
+    the "logs without pushes flag < 1%" check for arms that stop. ``spec.seed`` is the seed used."""
+    k = int(seed)
+    spec = draw(k, robot, max_samples=max_samples)
+    while spec.motion["type"] != "waypoints":
+        k += 1
+        spec = draw(k, robot, max_samples=max_samples)
+    scale, _, _ = _arm_scales(robot)
+    n = len(spec.joint_names)
+    spec.pushes, spec.payload = [], None
+    spec.friction = {"coulomb": (coulomb_frac * scale).tolist(), "beta": [0.0] * n,
+                     "viscous": list(spec.friction["viscous"])}
+    return spec
+
+
 # ----------------------------------------------------------------------------------------------
 # Recording a scenario
 # ----------------------------------------------------------------------------------------------
