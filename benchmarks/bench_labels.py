@@ -113,7 +113,7 @@ def family_cases(seeds, kind: str, cache: Path) -> list[Case]:
         log, lab = cache / f"{stem}.parquet", cache / f"{stem}.labels.parquet"
         if not (log.is_file() and lab.is_file()):
             write_scenario(record(spec), cache, stem)
-        name = {"lever": "lever", "holds": "holds"}.get(kind, spec.robot)
+        name = kind if kind in ("lever", "holds") else spec.robot
         out.append(_case_from_labels(f"{name}{seed}", log, lab,
                                      len(spec.joint_names), spec={k: spec.to_dict()[k] for k in
                                                                   ("robot", "rate_hz", "controller", "friction")}))

@@ -137,9 +137,10 @@ def test_written_scenario_reads_back_as_a_contract_log(tmp_path, kind):
 
 def test_push_free_holds_stick_every_joint_without_pushes():
     # The push-free arm check: no pushes, no payload, dry friction on every joint, and the holds
-    # really stick: at rest (true velocity exactly zero) MuJoCo's dry-friction force on every joint
-    # reaches at least half its band, i.e. the joint holds torque through friction; no sample is
-    # labelled disturbed.
+    # really stick: at rest (true velocity exactly zero) MuJoCo's constraint force (its dry friction
+    # here) on every joint reaches at least half the band, i.e. the joint holds torque through
+    # friction (a frictionless run of the same scenario also rests, so rest alone proves nothing);
+    # no sample is labelled disturbed.
     spec = family.push_free_holds(5001, max_samples=1200)
     assert spec.motion["type"] == "waypoints" and spec.pushes == [] and spec.payload is None
     knots = np.asarray(spec.motion["q"])

@@ -375,11 +375,9 @@ def push_free_holds(seed: int, robot: str = "panda", *, coulomb_frac: float = 0.
         k += 1
         spec = draw(k, robot, max_samples=max_samples)
     scale, _, _ = _arm_scales(robot)
-    n = len(spec.joint_names)
-    spec.pushes, spec.payload = [], None
-    spec.friction = {"coulomb": (coulomb_frac * scale).tolist(), "beta": [0.0] * n,
-                     "viscous": list(spec.friction["viscous"])}
-    return spec
+    friction = {"coulomb": (coulomb_frac * scale).tolist(), "beta": [0.0] * len(spec.joint_names),
+                "viscous": list(spec.friction["viscous"])}
+    return dataclasses.replace(spec, pushes=[], payload=None, friction=friction)
 
 
 # ----------------------------------------------------------------------------------------------
