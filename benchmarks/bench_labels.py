@@ -105,10 +105,8 @@ def family_cases(seeds, kind: str, cache: Path) -> list[Case]:
 
     out = []
     for seed in seeds:
-        if kind == "holds":
-            spec = push_free_holds(seed, max_samples=FAMILY_MAX_SAMPLES["holds"])
-        else:
-            spec = draw(seed, kind, max_samples=FAMILY_MAX_SAMPLES["lever" if kind == "lever" else "arm"])
+        cap = FAMILY_MAX_SAMPLES.get(kind, FAMILY_MAX_SAMPLES["arm"])     # "panda", "ur5": arms
+        spec = push_free_holds(seed, max_samples=cap) if kind == "holds" else draw(seed, kind, max_samples=cap)
         stem = f"{kind}{seed}"
         log, lab = cache / f"{stem}.parquet", cache / f"{stem}.labels.parquet"
         if not (log.is_file() and lab.is_file()):
