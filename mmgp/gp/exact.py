@@ -57,7 +57,8 @@ class StandardisedRBFGP(BaseEstimator):
 
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
-                 coarse_fit_points: int = 300, independent_outputs: bool = False, refine_rounds: int = 1):
+                 coarse_fit_points: int = 300, independent_outputs: bool = False, refine_rounds: int = 1,
+                 shared_starts: bool = False):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -68,6 +69,7 @@ class StandardisedRBFGP(BaseEstimator):
         self.coarse_fit_points = coarse_fit_points
         self.independent_outputs = independent_outputs
         self.refine_rounds = refine_rounds
+        self.shared_starts = shared_starts
 
     def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
@@ -134,6 +136,9 @@ class ExactGP(StandardisedRBFGP):
     refine_rounds : after a coarse climb, up to this many refinement runs of ``max_iter // 3``
         iterations on the fitting subset, another only while the last one still gained (see
         :func:`mmgp.gp.hyper.optimise_hyper`'s ``rounds``); default 1.
+    shared_starts : with ``independent_outputs``, after a coarse climb every output's refinement
+        is repeated from the best output's optimum and the better one kept (see
+        :func:`mmgp.gp.hyper.restart_from_best_output`); default False.
     device : torch device ("cpu", "cuda", "auto"); None (default): the block's default
         (:func:`mmgp.gp.linalg.default_device`), "cpu" outside one.
 

@@ -77,7 +77,7 @@ class SparseGP(StandardisedRBFGP):
     """SGPR with k-means inducing inputs; the ``ExactGP`` API for large N.
 
     Parameters: as ``ExactGP`` (ard, objective, max_fit_points, max_iter, noise_floor, device,
-    seed, coarse_fit_points, independent_outputs), plus ``n_inducing`` (M, default 1000; cost O(N M^2 m), memory
+    seed, coarse_fit_points, independent_outputs, refine_rounds, shared_starts), plus ``n_inducing`` (M, default 1000; cost O(N M^2 m), memory
     O(M^2 + M * chunk)), ``method`` ("sgpr", default, or "subset": an ``ExactGP`` conditioned on
     ``n_subset`` random samples, exposed as ``exact_`` with the rows in ``subset_``; it
     standardises the subset itself and takes the hyperparameters, in standardised units, from
@@ -92,10 +92,12 @@ class SparseGP(StandardisedRBFGP):
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
                  coarse_fit_points: int = 300, independent_outputs: bool = False, n_inducing: int = 1000,
-                 method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = 1):
+                 method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = 1,
+                 shared_starts: bool = False):
         super().__init__(ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
                          noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points,
-                         independent_outputs=independent_outputs, refine_rounds=refine_rounds)
+                         independent_outputs=independent_outputs, refine_rounds=refine_rounds,
+                         shared_starts=shared_starts)
         self.method = method
         self.n_subset = n_subset
         self.n_inducing = n_inducing

@@ -137,10 +137,11 @@ class ModeFitter:
         """The GP a mode is returned with: conditioned on ``members`` of targets Y (T, n); exact
         or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``). ``hyper`` None: the GP fits
         its own (its standard procedure on ``fit_points`` random members, one optimiser run
-        per output, refined while the climb still gains: up to 3 x ``fit_iter // 3`` iterations)."""
+        per output, refined while the climb still gains: up to 3 x ``fit_iter // 3`` iterations,
+        and once more from the best output's optimum, see :func:`mmgp.gp.hyper.restart_from_best_output`)."""
         s = self.settings
         kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=0, n_inducing=s.n_inducing,
-                  n_subset=s.n_inducing, independent_outputs=True, refine_rounds=3)
+                  n_subset=s.n_inducing, independent_outputs=True, refine_rounds=3, shared_starts=True)
         kw.update(s.gp_kwargs)
         gp = make_gp(len(members), method=s.gp_method, **kw)
         return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None)
