@@ -77,9 +77,9 @@ class SparseGP(StandardisedRBFGP):
     """SGPR with k-means inducing inputs; the ``ExactGP`` API for large N.
 
     Parameters: as ``ExactGP`` (ard, objective, max_fit_points, max_iter, noise_floor, device,
-    seed, coarse_fit_points, independent_outputs, refine_rounds, shared_starts), plus ``n_inducing`` (M, default 1000; cost O(N M^2 m), memory
-    O(M^2 + M * chunk)), ``method`` ("sgpr", default, or "subset": an ``ExactGP`` conditioned on
-    ``n_subset`` random samples, exposed as ``exact_`` with the rows in ``subset_``; it
+    seed, coarse_fit_points, independent_outputs, refine_rounds, shared_starts), plus
+    ``n_inducing`` (M, default 1000; cost O(N M^2 m), memory O(M^2 + M * chunk)), ``method``
+    ("sgpr", default, or "subset": an ``ExactGP`` conditioned on ``n_subset`` random samples, exposed as ``exact_`` with the rows in ``subset_``; it
     standardises the subset itself and takes the hyperparameters, in standardised units, from
     the fit on the full data).
 
