@@ -79,9 +79,9 @@ class SparseGP(StandardisedRBFGP):
     Parameters: as ``ExactGP`` (ard, objective, max_fit_points, max_iter, noise_floor, device,
     seed, coarse_fit_points, independent_outputs, refine_rounds, shared_starts), plus
     ``n_inducing`` (M, default 1000; cost O(N M^2 m), memory O(M^2 + M * chunk)), ``method``
-    ("sgpr", default, or "subset": an ``ExactGP`` conditioned on ``n_subset`` random samples, exposed as ``exact_`` with the rows in ``subset_``; it
-    standardises the subset itself and takes the hyperparameters, in standardised units, from
-    the fit on the full data).
+    ("sgpr", default, or "subset": an ``ExactGP`` conditioned on ``n_subset`` random samples,
+    exposed as ``exact_`` with the rows in ``subset_``; it standardises the subset itself and
+    takes the hyperparameters, in standardised units, from the fit on the full data).
 
     Learned: ``hyper_`` (standardised units, same meaning as ExactGP's), ``Z_`` (M, d)
     standardised inducing inputs, ``inducing_`` (M, d) the same in data units,
