@@ -10,7 +10,7 @@ recipe plus its excitation design). The peer is fitted and scored on exactly the
 time blocks, samples and valid equations, on the same low-passed residual. For the Panda it also
 prints the Coulomb level found per joint beside Gaz et al.'s Coulomb-equivalent level.
 
-Usage: python benchmarks/bench_diagnose_real.py [--logs panda,tx40,tiago] [--out DIR]
+Usage: python benchmarks/bench_diagnose_real.py [--logs panda,tx40,tiago] [--out DIR] [--coupling]
 """
 from __future__ import annotations
 
@@ -42,8 +42,9 @@ def convert_log(name: str, tmp: Path) -> Path:
                 if str(p).endswith(".parquet"))
 
 
-def peer_errors(d: Diagnoser, log, robot) -> dict:
-    """Held-out normalised MSE per joint of the WLS peer, on the diagnosis' own problem."""
+def peer_errors(d: Diagnoser, log, robot, coupling: bool = False) -> dict:
+    """Held-out normalised MSE per joint of the WLS peer, on the diagnosis' own problem; with
+    ``coupling``, also the peer plus a coupled transmission on each adjacent pair (printed)."""
     log_p, n_full, smear = st.prepare_log(log, d._differentiator(), d.max_samples)
     prob = st.build_problem(log_p, robot, n_full, smear, effects=d.effects, payload_links=d.payload_links,
                             n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
@@ -53,17 +54,50 @@ def peer_errors(d: Diagnoser, log, robot) -> dict:
     use = np.ones(len(prob.t), bool) if d.labels_ is None else d.labels_["disturbed"] == 0
     effects = [e for e in prob.library if e.name in ("inertial_parameters", "coulomb_friction", "viscous_friction")]
     _, A = build_atoms(effects, prob.ctx)
+    nm = wls_nmse(prob, use, A)
+    if coupling:
+        coupling_scan(prob, use, A, nm)
+    return dict(zip(prob.ctx.joint_names, nm.tolist()))
+
+
+def wls_nmse(prob, use: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Held-out nMSE (n,) of weighted least squares on the columns A (T, n, P): joints weighted
+    by the inverse variance of an unweighted fit's residual, fitted and scored per time block."""
     A = prob.lowpass(A)
     S = list(range(A.shape[2]))
     g_ols = FoldGrams(A, prob.r, use, prob.folds, W=prob.M)
     w = st.joint_weights((prob.r - A @ g_ols.fit(S, np.ones(prob.ctx.n)))[use], prob.M[use])
     thetas = [g_ols.fit(S, w, k) for k in range(g_ols.K)]
     sq = g_ols.test_errors(S, thetas).sum(0)
-    nm = sq / g_ols.nte.sum(0) / st.torque_variance(prob, use)
-    return dict(zip(prob.ctx.joint_names, nm.tolist()))
+    return sq / g_ols.nte.sum(0) / st.torque_variance(prob, use)
 
 
-def run(name: str, tmp: Path, out: Path | None) -> dict:
+def coupled_transmission(ctx, j: int, c: float) -> np.ndarray:
+    """Columns (T, n, 3) of a motor whose rotor turns with v = dq[j+1] + c dq[j] (a coupled
+    wrist): its Coulomb friction tanh(v / v_s), viscous friction v and rotor inertia dv/dt, acting
+    on joint j+1 and, by virtual work, c times on joint j."""
+    v = ctx.dq[:, j + 1] + c * ctx.dq[:, j]
+    dv = ctx.ddq[:, j + 1] + c * ctx.ddq[:, j]
+    cols = np.zeros((ctx.T, ctx.n, 3))
+    for p, f in enumerate((np.tanh(v / ctx.v_s[j + 1]), v, dv)):
+        cols[:, j, p], cols[:, j + 1, p] = c * f, f
+    return cols
+
+
+def coupling_scan(prob, use: np.ndarray, A: np.ndarray, base: np.ndarray) -> None:
+    """The peer plus one coupled transmission, each adjacent pair and ratio c = +-1: the pair's
+    held-out nMSE beside the peer's."""
+    ctx = prob.ctx
+    for j in range(ctx.n - 1):
+        for c in (1.0, -1.0):
+            nm = wls_nmse(prob, use, np.concatenate([A, coupled_transmission(ctx, j, c)], 2))
+            pair = f"{ctx.joint_names[j]}-{ctx.joint_names[j + 1]}"
+            print(f"  coupled transmission {pair}, c {c:+.0f}: joint {j} {base[j]:.4f} -> {nm[j]:.4f}, "
+                  f"joint {j + 1} {base[j + 1]:.4f} -> {nm[j + 1]:.4f}; others' mean "
+                  f"{np.delete(base, [j, j + 1]).mean():.4f} -> {np.delete(nm, [j, j + 1]).mean():.4f}", flush=True)
+
+
+def run(name: str, tmp: Path, out: Path | None, coupling: bool = False) -> dict:
     from mmgp.data.logs import read_log
     from mmgp.physics.robot import load_robot
 
@@ -75,7 +109,7 @@ def run(name: str, tmp: Path, out: Path | None) -> dict:
     sec = time.perf_counter() - t0
     if out is not None:
         d.report(out / name)
-    peer = peer_errors(d, log, robot)
+    peer = peer_errors(d, log, robot, coupling)
     stages = {k: v["nmse"] for k, v in d.fit_stages_.items() if isinstance(v, dict)}
     stages["peer_wls"] = peer
     names = list(peer)
@@ -117,9 +151,11 @@ def main(argv=None) -> int:
     ap.add_argument("--logs", default="panda,tx40,tiago")
     ap.add_argument("--out", type=Path, default=None, help="write each diagnosis' report here")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--coupling", action="store_true",
+                    help="also score the peer plus a coupled transmission on each adjacent joint pair")
     a = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        rows = [run(name, Path(tmp), a.out) for name in a.logs.split(",")]
+        rows = [run(name, Path(tmp), a.out, a.coupling) for name in a.logs.split(",")]
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1, default=str))
     return 0
