@@ -42,9 +42,9 @@ def convert_log(name: str, tmp: Path) -> Path:
                 if str(p).endswith(".parquet"))
 
 
-def peer_errors(d: Diagnoser, log, robot, coupling: bool = False) -> dict:
+def peer_errors(d: Diagnoser, log, robot, coupling: bool = False) -> tuple[dict, list[str]]:
     """Held-out normalised MSE per joint of the WLS peer, on the diagnosis' own problem; with
-    ``coupling``, also the peer plus a coupled transmission on each adjacent pair (printed)."""
+    ``coupling``, also lines on the peer plus a coupled transmission on each adjacent pair."""
     log_p, n_full, smear = st.prepare_log(log, d._differentiator(), d.max_samples)
     prob = st.build_problem(log_p, robot, n_full, smear, effects=d.effects, payload_links=d.payload_links,
                             n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
@@ -55,9 +55,7 @@ def peer_errors(d: Diagnoser, log, robot, coupling: bool = False) -> dict:
     effects = [e for e in prob.library if e.name in ("inertial_parameters", "coulomb_friction", "viscous_friction")]
     _, A = build_atoms(effects, prob.ctx)
     nm = wls_nmse(prob, use, A)
-    if coupling:
-        coupling_scan(prob, use, A, nm)
-    return dict(zip(prob.ctx.joint_names, nm.tolist()))
+    return dict(zip(prob.ctx.joint_names, nm.tolist())), (coupling_scan(prob, use, A, nm) if coupling else [])
 
 
 def wls_nmse(prob, use: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -84,17 +82,18 @@ def coupled_transmission(ctx, j: int, c: float) -> np.ndarray:
     return cols
 
 
-def coupling_scan(prob, use: np.ndarray, A: np.ndarray, base: np.ndarray) -> None:
-    """The peer plus one coupled transmission, each adjacent pair and ratio c = +-1: the pair's
-    held-out nMSE beside the peer's."""
-    ctx = prob.ctx
+def coupling_scan(prob, use: np.ndarray, A: np.ndarray, base: np.ndarray) -> list[str]:
+    """The peer plus one coupled transmission, each adjacent pair and ratio c = +-1: a line per
+    pair and ratio, its joints' held-out nMSE beside the peer's."""
+    ctx, lines = prob.ctx, []
     for j in range(ctx.n - 1):
         for c in (1.0, -1.0):
             nm = wls_nmse(prob, use, np.concatenate([A, coupled_transmission(ctx, j, c)], 2))
             pair = f"{ctx.joint_names[j]}-{ctx.joint_names[j + 1]}"
-            print(f"  coupled transmission {pair}, c {c:+.0f}: joint {j} {base[j]:.4f} -> {nm[j]:.4f}, "
-                  f"joint {j + 1} {base[j + 1]:.4f} -> {nm[j + 1]:.4f}; others' mean "
-                  f"{np.delete(base, [j, j + 1]).mean():.4f} -> {np.delete(nm, [j, j + 1]).mean():.4f}", flush=True)
+            lines.append(f"  coupled transmission {pair}, c {c:+.0f}: joint {j} {base[j]:.4f} -> {nm[j]:.4f}, "
+                         f"joint {j + 1} {base[j + 1]:.4f} -> {nm[j + 1]:.4f}; others' mean "
+                         f"{np.delete(base, [j, j + 1]).mean():.4f} -> {np.delete(nm, [j, j + 1]).mean():.4f}")
+    return lines
 
 
 def run(name: str, tmp: Path, out: Path | None, coupling: bool = False) -> dict:
@@ -109,7 +108,7 @@ def run(name: str, tmp: Path, out: Path | None, coupling: bool = False) -> dict:
     sec = time.perf_counter() - t0
     if out is not None:
         d.report(out / name)
-    peer = peer_errors(d, log, robot, coupling)
+    peer, coupled = peer_errors(d, log, robot, coupling)
     stages = {k: v["nmse"] for k, v in d.fit_stages_.items() if isinstance(v, dict)}
     stages["peer_wls"] = peer
     names = list(peer)
@@ -125,6 +124,7 @@ def run(name: str, tmp: Path, out: Path | None, coupling: bool = False) -> dict:
             nom = sum(stages[k][j] < stages["nominal"][j] for j in names)
             beat = sum(stages[k][j] < peer[j] for j in names)
             print(f"  {k}: beats nominal on {nom}/{len(names)} joints, beats the peer on {beat}/{len(names)}")
+    print("\n".join(coupled), end="\n" if coupled else "", flush=True)
     row = {"log": name, "seconds": sec, "stages": stages, "findings": d.findings_, "warnings": d.result_.warnings}
     if name == "panda":
         row["friction"] = panda_friction(d.findings_, names)
