@@ -299,8 +299,10 @@ def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: 
     """ExactGP's hyperparameter procedure, shared with the scalable GP.
 
     Xs (N, d), Ys (N, m) standardised; ``est`` supplies the settings (max_fit_points,
-    coarse_fit_points, max_iter, objective, ard, noise_floor, seed, independent_outputs). Cold starts (``warm`` False)
-    climb on a small coarse subset first, then refine on the fitting subset.
+    coarse_fit_points, max_iter, objective, ard, noise_floor, seed, independent_outputs,
+    refine_rounds, shared_starts). Cold starts (``warm`` False) climb on a small coarse subset
+    first, then refine on the fitting subset (in rounds, and from the best output's optimum when
+    ``shared_starts``).
     """
     rng = np.random.default_rng(est.seed)
     N = Xs.shape[0]
