@@ -278,7 +278,7 @@ def restart_from_best_output(parts: list[tuple[Hyper, float]],
     joint-angle lengthscales and ignores the sign, LOO +1.60, test nMSE 7e-8. Objectives per
     sample of standardised outputs on the same rows are comparable, so the output that reached
     the highest is the donor. Cost: one more refinement per output but one (WAM, 12,000 rows,
-    7 joints, 2 cores: ``train --modes 1 --no-disturbance`` 457 -> 773 s).
+    7 joints, 2 cores: ``train --modes 1 --no-disturbance`` 457 -> 773-787 s).
     """
     values = np.array([v for _, v in parts], dtype=float)
     if not np.isfinite(values).any():
@@ -288,7 +288,7 @@ def restart_from_best_output(parts: list[tuple[Hyper, float]],
     for j, (_, value) in enumerate(parts):
         if j == donor:
             continue
-        start = Hyper(parts[donor][0].lengthscale.copy(), np.ones(1), np.full(1, 1e-3))
+        start = Hyper(parts[donor][0].lengthscale, np.ones(1), np.full(1, 1e-3))   # climbs do not mutate it
         h, v = climb(j, start)
         if v > value or (math.isnan(value) and math.isfinite(v)):
             out[j] = (h, v)
