@@ -20,9 +20,10 @@ from .data.folds import windows_for_duration
 from .data.logs import RobotLog, log_from_arrays, names_a_robot
 from .errors import InputError
 from .gp.hyper import Hyper
+from .gp.linalg import resolve_device
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .models.features import build_features, load_logs, resolve_mean_basis, state_features
+from .models.features import build_features, load_logs, resolve_mean_basis, rest_band_on, state_features
 from .models.report import training_report
 
 MODEL_FORMAT = "mmgp-model"
@@ -34,7 +35,7 @@ _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_swe
                  "patience", "n_inducing")
 _NON_NEGATIVE = ("exclusion_s", "block_s", "min_push_s", "min_mode_s", "push_scan_s")
 _POSITIVE = ("push_s", "gap_s")
-_BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain", "rest_band")
+_BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain")
 
 
 class MultimodalGP(BaseEstimator):
@@ -105,8 +106,8 @@ class MultimodalGP(BaseEstimator):
     push_scan_z : float > 0, default 6.0
         The scan's threshold (about T / window x joints windows are tested; a Gaussian would
         need ~4.7 for a 1% chance of one false window per 100 s log at 100 Hz, 7 joints).
-    rest_band : bool, default False
-        Dry friction as physics: a Coulomb term in the mean; a resting joint may hold any torque in its band (docs/training.md).
+    rest_band : bool or "auto", default "auto"
+        A resting joint may hold any torque in its friction band; friction in the mean (docs/training.md). "auto": on with a rigid-body mean.
     abstain : bool, default True
         Flag nothing when the disturbance mode does not raise the log marginal likelihood of
         the labels' chain by more than its BIC price (a log without pushes).
@@ -180,7 +181,7 @@ class MultimodalGP(BaseEstimator):
                  friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
                  gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
                  tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, min_push_s=0.15,
-                 push_scan_s=0.2, push_scan_z=6.0, rest_band=False, abstain=True,
+                 push_scan_s=0.2, push_scan_z=6.0, rest_band="auto", abstain=True,
                  average_last=5, mode_smoothing_s=4.0, min_mode_s=4.0, calibrate=True, objective="loo", ard=True,
                  device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
@@ -228,7 +229,6 @@ class MultimodalGP(BaseEstimator):
         """Refuse a bad setting with an InputError naming it."""
         def bad(key, expected):
             raise InputError(f"setting '{key}': expected {expected}, got {getattr(self, key)!r}")
-
         n = self.n_modes
         if not (n == "auto" or (isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1)):
             bad("n_modes", "a positive integer or 'auto'")
@@ -252,6 +252,8 @@ class MultimodalGP(BaseEstimator):
         for key in _BOOL:
             if not isinstance(getattr(self, key), (bool, np.bool_)):
                 bad(key, "true or false")
+        if not isinstance(self.rest_band, (bool, np.bool_)) and not (isinstance(self.rest_band, str) and self.rest_band == "auto"):
+            bad("rest_band", "true, false or 'auto'")
         if self.final_support is not None and not (isinstance(self.final_support, (int, np.integer))
                                                    and not isinstance(self.final_support, bool)
                                                    and self.final_support >= 1):
@@ -270,8 +272,6 @@ class MultimodalGP(BaseEstimator):
             bad("seed", "an integer")
         if self.progress is not None and not callable(self.progress):
             bad("progress", "a function of a SweepRecord, or None")
-        from .gp.linalg import resolve_device
-
         try:
             resolve_device(self.device)
         except (ValueError, RuntimeError, TypeError) as exc:
@@ -337,7 +337,7 @@ class MultimodalGP(BaseEstimator):
         semi = self.semiparametric if robot is not None else "none"
         fscale = (smooth_sign_scale(np.concatenate([lg.dq for lg in logs_]))
                   if self.friction_feature else None)
-        band = self.rest_band and fscale is not None
+        band = fscale is not None and rest_band_on(self.rest_band, resolve_mean_basis(self.mean_basis, robot, semi))
         basis_kind = resolve_mean_basis(self.mean_basis, robot, semi, friction=band)
         feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
@@ -349,7 +349,7 @@ class MultimodalGP(BaseEstimator):
                                          min_push_s=self.min_push_s, min_mode_s=self.min_mode_s,
                                          push_scan_s=self.push_scan_s)
         kw.update(shortened)
-        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis,
+        data = dict(t=feats.t, starts=feats.starts, basis=feats.basis, muted=feats.muted,
                     rest=feats.rest_band(basis_kind, fscale) if band else None)
         if self.n_modes == "auto":
             sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)

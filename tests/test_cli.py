@@ -272,6 +272,6 @@ def test_train_says_why_modes_auto_stopped():
     assert _selection(lower) == " --modes auto: 1 mode(s); 2 rejected: scored lower (-12.5 vs -10.0)."
     lower["mode_selection"]["abandoned"] = {"1": False, "2": True}
     assert _selection(lower) == (" --modes auto: 1 mode(s); 2 rejected: scored lower (-12.5 vs -10.0); stopped early, "
-                                 "one of its modes held less than 4.0 s of samples.")
+                                 "one of its modes held nowhere for 4.0 s in one stretch.")
     assert _selection({"mode_selection": None}) == ""
 

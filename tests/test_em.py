@@ -302,6 +302,8 @@ def test_windowed_predictive_equals_brute_force_refits(radius):
     tq = np.concatenate([ts[::3], rng.uniform(-1, 11, 10), ts[:2] + radius])   # members, others, window edges
     Xq = np.column_stack([np.sin(tq), np.cos(0.7 * tq) * 3.0]) + 0.05 * rng.normal(size=(len(tq), 2))
     mean, var = windowed_predictive(gp, Xq, tq, ts, radius, chunk=7)
+    # one output alone (the friction band's branches): that output's column, by the same reference
+    alone = [windowed_predictive(gp, Xq, tq, ts, radius, chunk=7, output=j) for j in range(2)]
     Xs, Ys = gp.Xs_.numpy(), gp.Ys_.numpy()
     Xq_s = gp.x_scaler_.transform(Xq)
     for i in range(len(tq)):
@@ -311,8 +313,9 @@ def test_windowed_predictive_equals_brute_force_refits(radius):
             mu, v = gp_predict_ref(Xs[keep], Ys[keep, j], Xq_s[[i]], hyper.lengthscale[j], hyper.signal_var[j],
                                    hyper.noise_var[j])
             scale, shift = gp.y_scaler_.scale_[j], gp.y_scaler_.mean_[j]
-            np.testing.assert_allclose(mean[i, j], mu[0] * scale + shift, rtol=1e-8, atol=1e-8 * scale)
-            np.testing.assert_allclose(var[i, j], v[0] * scale ** 2, rtol=1e-8)
+            for m_, v_ in ((mean[i, j], var[i, j]), (alone[j][0][i, 0], alone[j][1][i, 0])):
+                np.testing.assert_allclose(m_, mu[0] * scale + shift, rtol=1e-8, atol=1e-8 * scale)
+                np.testing.assert_allclose(v_, v[0] * scale ** 2, rtol=1e-8)
     if radius == 0.0:  # nothing is left out at off-support times: the ordinary predictive
         off = np.array([np.abs(ts - s).min() > 0 for s in tq])
         m0, s0 = gp.predict(Xq[off], include_noise=True)

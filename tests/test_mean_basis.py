@@ -83,10 +83,12 @@ def test_trained_payload_model_round_trips_through_disk(tmp_path):
     robot = load_robot(log_path=log)
     model = MultimodalGP(robot=robot, max_sweeps=3, min_sweeps=2, average_last=1, fit_iter=8, fit_points=150,
                          max_support=200).fit(log)
-    assert model.report_["mean_basis"]["kind"] == "payload" and 7 <= model.report_["mean_basis"]["rank"] <= 10
+    # the payload's 10 inertial parameters (7-10 identifiable) and 2 friction levels per joint (rest_band)
+    assert model.report_["mean_basis"]["kind"] == "payload+friction"
+    assert 7 + 2 * 7 <= model.report_["mean_basis"]["rank"] <= 10 + 2 * 7
     model.save(tmp_path)
     back = MultimodalGP.load(tmp_path)
-    assert back.basis_kind_ == "payload"
+    assert back.basis_kind_ == "payload+friction"
     np.testing.assert_array_equal(back.basis_coef_[0], model.basis_coef_[0])
     rows = slice(20, 90)   # after the start transient, before the first push (t >= 1 s)
     q, dq, ddq = rec.q[rows], rec.info["dq_true"][rows], rec.info["ddq_true"][rows]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
 
-from mmgp.models.sem import longest_runs_s, select_n_modes
+from mmgp.models.sem import MultimodalSEM, longest_runs_s, select_n_modes
 
 
 def _brute_longest(labels, t, K, starts):
@@ -129,6 +129,24 @@ def test_a_candidate_whose_mode_cannot_last_is_abandoned_early():
     assert len(quick.trace_) < len(full.trace_)
     _, sel = select_n_modes(x[:, None], y[:, None], t=t, **kw)
     assert sel["chosen"] == 1
+
+
+def test_a_mode_of_many_short_stretches_is_abandoned_but_a_lasting_one_is_not():
+    # Offsets on for 1.2 s, off for 0.8 s, for 12 s: 7.2 s of offset in all, none of it 4 s in
+    # one stretch (the selection's test). Beside it, the same offset on and off every 6 s: a mode.
+    t, x, f = _signal(480, 20.0)
+    noise = 0.05 * np.random.default_rng(2).normal(size=len(t))
+    kw = dict(disturbance=False, max_sweeps=20, fit_iter=20, min_sweeps=4, patience=2)
+    flicker = (t >= 6) & (t < 18) & ((t - 6) % 2 < 1.2)
+    full = MultimodalSEM(n_modes=2, **kw).fit(x[:, None], (f + flicker + noise)[:, None], t=t)
+    assert np.bincount(full.labels_, minlength=2).min() * 0.05 > 4.0    # more than 4 s in all
+    assert full.longest_stretch_s_.min() < 4.0 and not full.abandoned_
+    quick = MultimodalSEM(n_modes=2, abandon_short_modes=True, **kw).fit(x[:, None], (f + flicker + noise)[:, None], t=t)
+    assert quick.abandoned_ and len(quick.trace_) < len(full.trace_)
+    blocks = ((t >= 6) & (t < 12)) | (t >= 18)
+    lasting = MultimodalSEM(n_modes=2, abandon_short_modes=True, **kw).fit(x[:, None], (f + blocks + noise)[:, None], t=t)
+    assert not lasting.abandoned_
+    assert adjusted_rand_score(blocks, lasting.labels_) > 0.95
 
 
 def test_the_selection_judges_stretches_before_merging():

@@ -78,7 +78,7 @@ def _selection(rep: dict) -> str:
                f"(< min_mode_s {sel.get('min_mode_s')} s)")
     abandoned = {int(k): v for k, v in (sel.get("abandoned") or {}).items()}
     if abandoned.get(tried):
-        why += f"; stopped early, one of its modes held less than {sel.get('min_mode_s')} s of samples"
+        why += f"; stopped early, one of its modes held nowhere for {sel.get('min_mode_s')} s in one stretch"
     return f" --modes auto: {chosen} mode(s); {tried} rejected: {why}."
 
 

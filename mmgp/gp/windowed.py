@@ -13,7 +13,7 @@ from .kernels import rbf_kernel
 
 
 def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndarray, radius: float,
-                        chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+                        chunk: int = 512, output: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Predictive mean and variance (incl. noise) at Xq (M, d) from the GP's support *minus* every
     support point within ``radius`` seconds of each query's time.
 
@@ -22,7 +22,8 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
     whole time window out asks the question that matters: is this stretch explained by the rest of
     the log? Closed form from A = K^-1 of the full support (S) and W = the window's members:
         mu_W  = mu  - u_W^T A_WW^-1 alpha_W,     var_W = var + u_W^T A_WW^-1 u_W,   u = A k_S*.
-    ``tq`` (M,) and ``ts`` (S,) are times (sorted ``ts``) on a common axis; (M, m) outputs.
+    ``tq`` (M,) and ``ts`` (S,) are times (sorted ``ts``) on a common axis; (M, m) outputs, or
+    (M, 1) of output ``output`` alone (1/m of the work).
     """
     import torch
 
@@ -31,10 +32,14 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
     # (about 2 x support runs instead of one per query: half the time of a per-query solve
     # on a 7-DOF, 5,000-sample log).
     dev = gp.dev_
-    ls, sf, sn = gp.hyper_.to_torch(dev)
+    hyper, L, alpha = gp.hyper_, gp.L_, gp.alpha_
+    y_mean, y_scale = gp.y_scaler_.mean_, gp.y_scaler_.scale_
+    if output is not None:
+        sel = slice(output, output + 1)
+        hyper, L, alpha, y_mean, y_scale = hyper.output(output), L[sel], alpha[sel], y_mean[sel], y_scale[sel]
+    ls, sf, sn = hyper.to_torch(dev)
     Xs = gp.Xs_
-    A = torch.cholesky_inverse(gp.L_)
-    alpha = gp.alpha_
+    A = torch.cholesky_inverse(L)
     m, S = alpha.shape
     tq = np.asarray(tq, dtype=np.float64)
     order = np.argsort(tq, kind="stable")
@@ -81,6 +86,6 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
         vars_.append(var.clamp_min(1e-12) + sn[:, None])
     inv = np.empty(M, int)
     inv[order] = np.arange(M)
-    mean = torch.cat(means, 1).T.cpu().numpy()[inv] * gp.y_scaler_.scale_ + gp.y_scaler_.mean_
-    var = torch.cat(vars_, 1).T.cpu().numpy()[inv] * gp.y_scaler_.scale_ ** 2
+    mean = torch.cat(means, 1).T.cpu().numpy()[inv] * y_scale + y_mean
+    var = torch.cat(vars_, 1).T.cpu().numpy()[inv] * y_scale ** 2
     return mean, var

@@ -103,10 +103,11 @@ class MultimodalSEM:
         1-1.5 s inside payload segments (poses where the payload barely loads the joints) were
         called the other mode. :func:`select_n_modes` also requires every mode to last this long.
     abandon_short_modes : (K > 1, with ``t``) stop the sweeps early, unconverged, once one mode
-        has held fewer than ``min_mode_s`` seconds of samples in all for ``patience`` sweeps after
-        ``min_sweeps`` (``abandoned_`` True): such a mode cannot last ``min_mode_s``, so
-        :func:`select_n_modes` (which sets this) would reject the candidate anyway. Real Panda,
-        20,544 samples: K = 2 kept a 3.4-3.7 s second mode for 45 sweeps (13 of 19.5 minutes).
+        has held nowhere for ``min_mode_s`` seconds in one stretch (each sweep's most probable
+        labels) for ``patience`` sweeps after ``min_sweeps`` (``abandoned_`` True): such a mode
+        is what :func:`select_n_modes` (which sets this) rejects. Real Panda, 20,544 samples:
+        K = 2 kept a 3.4-3.7 s second mode for 45 sweeps (13 of 19.5 minutes); with ``rest_band``,
+        a second mode of 6,400-6,700 samples in stretches of at most 0.74 s for 44 sweeps.
     calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
     shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
         payload) instead of one per joint.
@@ -128,8 +129,9 @@ class MultimodalSEM:
         stuck and hold any torque within its friction band: its undisturbed density is, with
         the rest weight, uniform over the band (the model's own friction,
         :meth:`.mstep.ModeFitter.friction_band`) blurred by the predictive spread
-        (:func:`.mstep.at_rest_logpdf`); the scan does not average where the band is wider than
-        that spread. On the issue-10 tuning levers stuck holds and velocity
+        (:func:`.mstep.at_rest_logpdf`), and an unbroken hold votes once, for the band or for a
+        push (:func:`.mstep.hold_weights`); the scan does not average where the band is wider
+        than that spread. On the issue-10 tuning levers stuck holds and velocity
         reversals were the false alarms (docs/training.md, "A stuck joint holds any torque in
         its friction band").
     start_trim : fractions of the samples kept by the successive refits of the start.
@@ -164,13 +166,17 @@ class MultimodalSEM:
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
             init_states: np.ndarray | None = None, basis: np.ndarray | None = None,
-            rest: RestBand | None = None, sweeps: bool | None = None) -> "MultimodalSEM":
+            rest: RestBand | None = None, muted: np.ndarray | None = None,
+            sweeps: bool | None = None) -> "MultimodalSEM":
         """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
         (T, n, p): optional per-output linear regressors (e.g. the rigid-body inertial-parameter
         regressor); each mode then has the mean ``basis @ coef_[k]`` (coef (n, p)) under its GP.
         ``rest``: where joints rest and where their velocity signs are (a
         :class:`.mstep.RestBand`), for the friction band at rest (``rest_band``); None: no band.
+        ``muted``: (n,) bool, joints whose torque channel cannot tell a push (a dead band,
+        :func:`mmgp.data.channels.dead_banded`): they neither vote for a push nor against one
+        (their pushed density is their untouched one; not in the start's or the scan's tests).
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
@@ -193,7 +199,8 @@ class MultimodalSEM:
             return self._fit_single(X, Y, t=t, starts=starts, basis=basis)
         # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
         with limit_threads(1):
-            return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis, rest=rest)
+            return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis, rest=rest,
+                             muted=muted)
 
     def _fit_single(self, X, Y, *, t, starts, basis=None) -> "MultimodalSEM":
         """One GP on every sample, by :func:`mmgp.gp.sparse.make_gp`, hyperparameters by its own
@@ -219,9 +226,9 @@ class MultimodalSEM:
         self.timings_ = {"init_s": 0.0, "gp_s": total, "estep_s": 0.0, "total_s": total}
         return self
 
-    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None) -> "MultimodalSEM":
+    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None, muted=None) -> "MultimodalSEM":
         t0 = time.perf_counter()
-        fitter, starts = self._prepare(X, Y, t, starts, basis, rest)
+        fitter, starts = self._prepare(X, Y, t, starts, basis, rest, muted)
         T, n = fitter.Y.shape
         K = self.n_modes
         S = 2 * K if self.disturbance else K
@@ -249,7 +256,6 @@ class MultimodalSEM:
         dt = float(np.median(np.diff(fitter.t_axis))) if fitter.t_axis is not None else math.inf
         min_mode_len = self.min_mode_s / dt if K > 1 else 0.0
         scan_len = self.push_scan_s / dt          # the scan's window in samples (0: no scan)
-        too_short = min_mode_len if self.abandon_short_modes else 0.0
         while True:
             ts = time.perf_counter()
             optimise = (sweep in refit_at) and not monitor.averaging
@@ -275,7 +281,8 @@ class MultimodalSEM:
                 self.progress(rec)
             if monitor.update(rec, step.probs):
                 break
-            short = short + 1 if sweep + 1 >= self.min_sweeps and min(rec.mode_sizes) < too_short else 0
+            fleeting = sweep + 1 >= self.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
+            short = short + 1 if fleeting else 0
             if short >= self.patience:
                 monitor.abandon(step.probs)
                 self.abandoned_ = True
@@ -287,7 +294,16 @@ class MultimodalSEM:
         self.timings_ = timings
         return self
 
-    def _prepare(self, X, Y, t, starts, basis, rest=None) -> tuple[ModeFitter, list[int]]:
+    def _fleeting(self, probs: np.ndarray, K: int, t: np.ndarray | None, starts) -> bool:
+        """``abandon_short_modes``: some mode of this sweep's most probable labels (marginals
+        ``probs`` (T, S)) holds nowhere for ``min_mode_s`` in one stretch, the test
+        :func:`select_n_modes` rejects a candidate by (on the averaged labels, before merging)."""
+        if not self.abandon_short_modes or K < 2 or t is None:
+            return False
+        p_mode = probs[:, :K] + (probs[:, K:2 * K] if self.disturbance else 0.0)
+        return float(longest_runs_s(p_mode.argmax(1), t, K, starts).min()) < self.min_mode_s
+
+    def _prepare(self, X, Y, t, starts, basis, rest=None, muted=None) -> tuple[ModeFitter, list[int]]:
         """Checked float64 arrays, the joined time axis and the basis rank, as a ModeFitter."""
         X = np.asarray(X, dtype=np.float64)
         Y = np.asarray(Y, dtype=np.float64)
@@ -318,7 +334,7 @@ class MultimodalSEM:
                 raise ValueError(f"rest weights must be (T, n) = ({T}, {n}) with n sign columns")
         else:
             rest = None
-        return ModeFitter(X, Y, self, t_axis=axis, basis=basis, band=rest), starts
+        return ModeFitter(X, Y, self, t_axis=axis, basis=basis, band=rest, starts=starts, muted=muted), starts
 
     def _initial_states(self, fitter: ModeFitter) -> tuple[np.ndarray, object]:
         """Start without labels (deterministic): one GP on everything, refitted (with the
@@ -346,6 +362,8 @@ class MultimodalSEM:
                 if sel.any():
                     dev = np.abs(r[sel] - np.median(r[sel], 0))
                     z[sel] = dev / (1.4826 * np.median(dev, 0) + 1e-12)
+            if fitter.muted is not None:
+                z[:, fitter.muted] = 0.0
             states[(z > self.start_z).any(1)] += K
         return states, gp.hyper_
 
@@ -429,6 +447,8 @@ class MultimodalSEM:
         var = np.stack(last["vars"])[modes, np.arange(T)]
         z = (fitter.Y - mean) / np.sqrt(var)
         ok = np.repeat((p_dist <= 0.5)[:, None], z.shape[1], 1)
+        if fitter.muted is not None:
+            ok[:, fitter.muted] = False
         if last["bands"] is not None:
             # Where a joint may be stuck, its held torque is an offset that lasts as long as
             # the hold: not evidence of a push unless it leaves the band (the chain's test).
@@ -503,7 +523,7 @@ class MultimodalSEM:
 
 
 def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None, rest=None,
-                   **kw) -> tuple[MultimodalSEM, dict]:
+                   muted=None, **kw) -> tuple[MultimodalSEM, dict]:
     """Choose K: the candidates are tried in increasing order; K is kept while it raises a
     BIC-style score on the chain's log marginal likelihood of the final sweep (itself built from
     out-of-sample GP predictions), score = log p(Y) - 0.5 log(T) * n_params, and every one of
@@ -522,7 +542,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     best = None
     for K in sorted(candidates):
         m = MultimodalSEM(n_modes=K, abandon_short_modes=K > 1, **kw).fit(X, Y, t=t, starts=starts, basis=basis,
-                                                                          rest=rest, sweeps=True)
+                                                                          rest=rest, muted=muted, sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         longest[K] = m.longest_stretch_s_.round(3).tolist()
         models[K] = m
