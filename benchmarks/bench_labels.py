@@ -3,16 +3,31 @@
 Sets of logs (``--sets``):
 - ``replica``: the shipped 1-DOF replica (mmgp/resources/replica);
 - ``tuning``: family levers (mmgp.sim.family) with seeds TUNING_LEVERS, the set developed on;
-- ``heldout``: family levers HELDOUT_LEVERS and arms HELDOUT_ARMS, drawn once (2026-11-24) and
-  scored only at the end;
+- ``heldout``: family levers HELDOUT_LEVERS and arms HELDOUT_ARMS, drawn once (2026-11-24); looked at
+  since, so tuning data now;
+- ``heldout2``: family levers HELDOUT2_LEVERS and arms HELDOUT2_ARMS, drawn once (2026-11-27); the
+  levers were looked at once scored;
+- ``heldout3``: family levers HELDOUT3_LEVERS and arms HELDOUT3_ARMS, drawn once (2026-11-27,
+  second session), scored once and looked at since;
+- ``heldout4``: family levers HELDOUT4_LEVERS and arms HELDOUT4_ARMS, drawn once (2026-11-27,
+  third session) and scored only at the end;
 - ``holds`` / ``holds-heldout``: push-free Panda logs whose joints all stick during holds
   (:func:`mmgp.sim.family.push_free_holds`, seeds HOLDS_TUNING / HOLDS_HELDOUT): every flag is a
   false alarm;
-- ``validation``: every log of ../shared/validation (its truth and its judging rule).
-Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``source`` (today's
+- ``validation``: every log of ../shared/validation (its truth and its judging rule);
+- ``source-tuning`` / ``issue29``: issue 29's family: levers in the source experiment's shape
+  (``mmgp.sim.family.draw(seed, "source")``: 20 Hz, load-dependent friction, PD without gravity
+  compensation, holds, firm pushes), some with the pushes taken out (``source-free``), and arms
+  (Panda, UR5: payload modes, pushes of 5-40 N, push-free holds). ``source-tuning`` (seeds
+  SOURCE_TUNING, SOURCE_FREE_TUNING) is developed on; ``issue29`` (ISSUE29_*, drawn once on
+  2026-11-27 from a system random source, committed before any tuning) is scored once at the end.
+Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
+``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
+``mmgp-noband`` (``rest_band`` off: the default before), ``source`` (today's
 code set as the source: single-site Gibbs, plain LOO objective, exclusion_s 0, no friction input,
 no rigid-body mean), ``gp3sigma`` (one GP, 3-sigma LOO residuals), ``itgp`` (robustgp's
-iteratively trimmed GP, per joint), ``rrp`` (BoTorch's Robust Relevance Pursuit GP, per joint;
+iteratively trimmed GP, per joint), ``huber`` (scikit-learn's HuberRegressor per joint on the
+physics features [q, dq, ddq, sin q, cos q, sign dq], 3 of its scales), ``rrp`` (BoTorch's Robust Relevance Pursuit GP, per joint;
 only where it can finish in 10 minutes).
 
 1-DOF logs run ``--seeds-1dof`` seeds (default 10), multi-joint logs ``--seeds-arm`` (default 3).
@@ -30,6 +45,7 @@ Usage: python benchmarks/bench_labels.py [--sets replica,tuning,validation] [--m
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import os
@@ -55,13 +71,42 @@ if not VALIDATION.is_dir():
 TUNING_LEVERS = tuple(range(1000, 1012))
 HELDOUT_LEVERS = (1065281, 1168894, 1194432, 1319587, 1336629, 1349753, 1508402, 1827650, 1850361, 1862447)
 HELDOUT_ARMS = (1904329, 1931962, 1997658)
+# The first held-out set was looked at while the friction band at rest was developed (2026-11-26/27),
+# so it is tuning data now; a second one was drawn once (2026-11-27, a system random source) and is
+# scored only at the end (``--sets heldout2``).
+HELDOUT2_LEVERS = (2309870, 2418942, 2466792, 2517479, 2649933, 2684407, 2866666, 2886532, 2943621, 2992537)
+HELDOUT2_ARMS = (3043134, 3064286)
+# The second held-out levers were looked at once scored (2026-11-27); a third set was drawn once
+# (2026-11-27, second session, a system random source), to be scored only at the end (``--sets heldout3``).
+HELDOUT3_LEVERS = (4118512, 4158836, 4294290, 4314507, 4348766, 4459312, 4725942, 4828145, 4855614, 4907980)
+HELDOUT3_ARMS = (5495536, 5910281)
+# The third held-out set was looked at once scored (2026-11-27); a fourth was drawn once (2026-11-27,
+# third session, a system random source) to score the default with ``rest_band`` on (``--sets heldout4``).
+HELDOUT4_LEVERS = (8106190, 9431348, 6851129, 7272691, 4300703, 9036345, 2175781, 1476471, 2247620, 1384848)
+HELDOUT4_ARMS = (4801393, 2330106)
 # Log length caps (samples) of the benchmark's family logs, for its running time: levers then run
 # at up to 100 Hz for 12-40 s, arms at 100-250 Hz for 30-80 s.
-FAMILY_MAX_SAMPLES = {"lever": 1200, "arm": 8000, "holds": 6000}
+FAMILY_MAX_SAMPLES = {"lever": 1200, "arm": 8000, "holds": 6000, "holds-ur5": 6000, "source": 1500,
+                      "source-free": 1500}
 # Push-free Panda logs whose joints all stick in holds (mmgp.sim.family.push_free_holds): tuning
 # seeds (looked at), and held-out seeds drawn once (2026-11-26), to be scored only at the end.
 HOLDS_TUNING = (5001, 5002)
 HOLDS_HELDOUT = (7331, 8447)
+# Issue 29. Development levers in the source's shape (pushed, and push-free: the same draw without
+# its pushes).
+SOURCE_TUNING = tuple(range(1, 11))
+SOURCE_FREE_TUNING = (11, 12, 13)
+# The held-out family, drawn once (2026-11-27, a system random source) and committed before any
+# tuning; scored once at the end. Arms chosen from one drawn pool by their specs alone, in pool
+# order: per robot the first with two payload modes, with a fixed payload, without one (all with
+# pushes); the next two pool seeds are the push-free holds (Panda, UR5).
+ISSUE29_SOURCE = (18270546, 12314222, 15690442, 12317899, 15210799, 10427370, 14188494, 17901634, 16348575,
+                  14514640, 16221227, 14048342)
+ISSUE29_SOURCE_FREE = (13263470, 16058534, 10437629, 16697948)
+ISSUE29_PANDA = (15643352, 11974287, 15111564)
+ISSUE29_UR5 = (11853609, 14874471, 13828903)
+ISSUE29_HOLDS_PANDA = (11296951,)
+ISSUE29_HOLDS_UR5 = (15263959,)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -106,15 +151,20 @@ def family_cases(seeds, kind: str, cache: Path) -> list[Case]:
     out = []
     for seed in seeds:
         cap = FAMILY_MAX_SAMPLES.get(kind, FAMILY_MAX_SAMPLES["arm"])     # "panda", "ur5": arms
-        spec = push_free_holds(seed, max_samples=cap) if kind == "holds" else draw(seed, kind, max_samples=cap)
+        if kind in ("holds", "holds-ur5"):
+            spec = push_free_holds(seed, "ur5" if kind == "holds-ur5" else "panda", max_samples=cap)
+        elif kind == "source-free":
+            spec = dataclasses.replace(draw(seed, "source"), pushes=[])
+        else:
+            spec = draw(seed, kind, max_samples=cap)
         stem = f"{kind}{seed}"
         log, lab = cache / f"{stem}.parquet", cache / f"{stem}.labels.parquet"
         if not (log.is_file() and lab.is_file()):
             write_scenario(record(spec), cache, stem)
-        name = kind if kind in ("lever", "holds") else spec.robot
+        name = kind if kind in ("lever", "holds", "holds-ur5", "source", "source-free") else spec.robot
         out.append(_case_from_labels(f"{name}{seed}", log, lab,
                                      len(spec.joint_names), spec={k: spec.to_dict()[k] for k in
-                                                                  ("robot", "rate_hz", "controller", "friction")}))
+                                                                  ("robot", "rate_hz", "controller", "friction", "lever")}))
     return out
 
 
@@ -255,6 +305,25 @@ def itgp(case: Case, prep: Prepared, seed: int) -> Outcome:
     return Outcome(flags, None, np.zeros(len(Y), int), time.perf_counter() - t0)
 
 
+def huber(case: Case, prep: Prepared, seed: int) -> Outcome:
+    """scikit-learn's HuberRegressor per joint on physics features [q, dq, ddq, sin q, cos q,
+    sign dq] (all joints' states, standardised); a sample is disturbed where a joint's residual
+    exceeds 3 of its fitted scales (the issue's strongest peer)."""
+    from sklearn.linear_model import HuberRegressor
+
+    X, Y = prep.feats.X, prep.feats.Y
+    n = Y.shape[1]
+    q, dq, ddq = X[:, :n], X[:, n:2 * n], X[:, 2 * n:3 * n]
+    t0 = time.perf_counter()
+    F = np.concatenate([q, dq, ddq, np.sin(q), np.cos(q), np.sign(dq)], axis=1)
+    F = (F - F.mean(0)) / (F.std(0) + 1e-12)
+    flags = np.zeros(len(Y), bool)
+    for j in range(n):
+        h = HuberRegressor(max_iter=1000).fit(F, Y[:, j])
+        flags |= np.abs(Y[:, j] - h.predict(F)) > 3.0 * h.scale_
+    return Outcome(flags, None, np.zeros(len(Y), int), time.perf_counter() - t0)
+
+
 def rrp(case: Case, prep: Prepared, seed: int) -> Outcome:
     """BoTorch's RobustRelevancePursuitSingleTaskGP per joint; disturbed where a joint's sample
     got an outlier variance (rho > 0), within RRP_BUDGET_S seconds for the whole log."""
@@ -288,8 +357,10 @@ def rrp(case: Case, prep: Prepared, seed: int) -> Outcome:
 
 
 def methods_by_name(names, modes_auto: bool) -> dict:
-    reg = {"mmgp": MmgpMethod(modes_auto=modes_auto), "source": MmgpMethod(SOURCE_SETTINGS, modes_auto),
-           "gp3sigma": gp3sigma, "itgp": itgp, "rrp": rrp}
+    reg = {"mmgp": MmgpMethod(modes_auto=modes_auto), "mmgp-rb": MmgpMethod({"rest_band": True}, modes_auto),
+           "mmgp-noband": MmgpMethod({"rest_band": False}, modes_auto),
+           "source": MmgpMethod(SOURCE_SETTINGS, modes_auto),
+           "gp3sigma": gp3sigma, "itgp": itgp, "huber": huber, "rrp": rrp}
     unknown = [n for n in names if n not in reg]
     if unknown:
         raise SystemExit(f"unknown methods {unknown}; known: {sorted(reg)}")
@@ -384,10 +455,23 @@ def main(argv=None) -> int:
         cases += family_cases(TUNING_LEVERS, "lever", a.cache)
     if "heldout" in sets:
         cases += family_cases(HELDOUT_LEVERS, "lever", a.cache) + family_cases(HELDOUT_ARMS, "arm", a.cache)
+    if "heldout2" in sets:
+        cases += family_cases(HELDOUT2_LEVERS, "lever", a.cache) + family_cases(HELDOUT2_ARMS, "arm", a.cache)
+    if "heldout3" in sets:
+        cases += family_cases(HELDOUT3_LEVERS, "lever", a.cache) + family_cases(HELDOUT3_ARMS, "arm", a.cache)
+    if "heldout4" in sets:
+        cases += family_cases(HELDOUT4_LEVERS, "lever", a.cache) + family_cases(HELDOUT4_ARMS, "arm", a.cache)
     if "holds" in sets:
         cases += family_cases(HOLDS_TUNING, "holds", a.cache)
     if "holds-heldout" in sets:
         cases += family_cases(HOLDS_HELDOUT, "holds", a.cache)
+    if "source-tuning" in sets:
+        cases += family_cases(SOURCE_TUNING, "source", a.cache) + family_cases(SOURCE_FREE_TUNING, "source-free", a.cache)
+    if "issue29" in sets:
+        cases += (family_cases(ISSUE29_SOURCE, "source", a.cache) + family_cases(ISSUE29_SOURCE_FREE, "source-free", a.cache)
+                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
+                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
+                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
     if "validation" in sets:
         cases += validation_cases()
     if only:

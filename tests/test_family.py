@@ -48,6 +48,34 @@ def test_draws_span_the_family_ranges():
     assert any(a.payload is not None and a.n_modes == 1 for a in arms)
 
 
+def test_source_draws_keep_the_source_experiments_shape():
+    specs = [family.draw(s, "source") for s in range(200)]
+    assert {s.rate_hz for s in specs} == {20.0} and {s.controller["type"] for s in specs} == {"pd"}
+    samples = np.array([s.duration * s.rate_hz for s in specs])
+    assert samples.min() >= 330 - 1e-9 and samples.max() <= 1500 + 1e-9
+    load_dependent = np.mean([s.friction["beta"][0] > 0 for s in specs])
+    assert 0.55 < load_dependent < 0.85
+    assert {s.motion["type"] for s in specs} == {"waypoints"} and {s.sensor["dq"] for s in specs} == {"absent"}
+    force = np.array([abs(p["force"][2]) for s in specs for p in s.pushes])
+    assert force.min() >= 15.0 and force.max() <= 60.0
+    assert all(p["point"][0] == s.lever["com"] for s in specs for p in s.pushes)
+    pushed = [sum(p["duration"] for p in s.pushes) / s.duration for s in specs if len(s.pushes) > 3]
+    assert 0.15 < np.median(pushed) < 0.35
+    G = np.array([s.lever["gravity_torque"] for s in specs])
+    assert np.allclose(G, [s.lever["mass"] * family.GRAVITY * s.lever["com"] for s in specs])
+    assert G.min() >= 0.5 * family.GRAVITY * 0.15 and G.max() <= 1.2 * family.GRAVITY * 0.3
+
+
+def test_source_lever_sticks_in_its_holds():
+    # MuJoCo's dry friction holds the lever still during the reference's holds (dq exactly 0 on
+    # many samples) with no push acting: the stuck states issue 29 is about.
+    spec = dataclasses.replace(family.draw(2, "source"), pushes=[], duration=20.0)
+    rec = family.record(spec)
+    still = np.abs(rec.info["dq_true"][:, 0]) < 1e-9
+    assert still.sum() >= 20
+    assert (rec.labels["disturbed"] == 0).all()
+
+
 def test_same_seed_same_log_and_spec_replays_from_json():
     spec = _short_lever(3)
     assert family.draw(3) == family.draw(3) and family.draw(3) != family.draw(4)

@@ -16,6 +16,8 @@ What a draw spans (issue 10):
   gravity compensation (from the nominal model), or computed torque. Reference: sums of sines or
   waypoints with holds (where a joint with dry friction sticks). Rates 20-1000 Hz; ``dq``
   measured, finite-differenced or absent (``ddq`` absent or measured).
+- ``kind="source"``: a lever in the source experiment's shape (issue 29): a 0.5-1.2 kg load,
+  Bowden-like dry friction, PD without gravity compensation, 20 Hz, holds, firm pushes.
 - ``kind="panda"`` / ``"ur5"``: the example-robot-data arm, computed torque or PD + gravity
   compensation, friction on some joints, and a payload at the tool: none, fixed (a concealed
   inertial change, one mode), or switching between two masses in segments (two modes).
@@ -257,6 +259,41 @@ def _draw_lever(rng, seed, max_samples) -> ScenarioSpec:
         motion=motion, sensor=_draw_sensor(rng, 1, [G], rate), pushes=pushes)
 
 
+def _draw_source_lever(rng, seed, max_samples) -> ScenarioSpec:
+    """A lever in the source experiment's shape (Haninger 2016, ch. 5; issue 29): a load of
+    0.5-1.2 kg on a 0.15-0.3 m lever (peak gravity torque 0.7-3.5 N*m), Bowden-like dry friction
+    (load-dependent ``c + beta |tau|`` on 70% of the levers, Coulomb alone otherwise, c 0.1-0.4
+    N*m, beta 0.1-0.3), PD without gravity compensation (kp 100-400 N*m/rad), 20 Hz for 330-1,500
+    samples, waypoint moves with holds of 0.5-3 s (where the lever sticks), firm pushes of 15-60
+    N at the load for 0.2-2 s on 20-35% of the time, q only (dq and ddq left to be estimated)."""
+    mass, length = float(rng.uniform(0.5, 1.2)), float(rng.uniform(0.15, 0.3))
+    G = mass * GRAVITY * length
+    inertia = float(1.1 * mass * length ** 2)
+    load_dependent = rng.uniform() < 0.7
+    coulomb = float(rng.uniform(0.1, 0.4))
+    beta = float(rng.uniform(0.1, 0.3)) if load_dependent else 0.0
+    viscous = float(rng.uniform(0.0, 0.05))
+    kp = float(rng.uniform(100.0, 400.0))
+    kd = float(2 * rng.uniform(0.5, 1.0) * np.sqrt(kp * inertia) + rng.uniform(0.0, 20.0))
+    rate = 20.0
+    duration = float(min(rng.uniform(330, 1500), max_samples) / rate)
+    motion = _draw_waypoints(rng, [0.3], [1.0], float(rng.uniform(0.4, 0.8)), duration, move=(1.5, 5.0),
+                             hold=(0.5, 3.0))
+    pushes = []
+    for t0, d in _push_times(rng, duration, rng.uniform(0.2, 0.35), 2.0):
+        force = float(rng.choice([-1, 1]) * rng.uniform(15.0, 60.0))
+        pushes.append({"t0": t0, "duration": d, "body": "lever", "force": [0.0, 0.0, force],
+                       "torque": [0.0, 0.0, 0.0], "point": [length, 0.0, 0.0], "frame": "body",
+                       "ramp": _ramp(rng, d)})
+    sensor = {"tau_noise": [0.02], "q_resolution": float(2 * np.pi / 2 ** 14), "dq": "absent",
+              "dq_noise": 0.0, "ddq": "absent", "ddq_noise": 0.0}
+    return ScenarioSpec(
+        seed=seed, robot="lever", rate_hz=rate, duration=duration, joint_names=["lever_joint"],
+        lever={"mass": mass, "com": length, "inertia": inertia, "armature": 1e-3, "gravity_torque": G},
+        friction={"coulomb": [coulomb], "beta": [beta], "viscous": [viscous]},
+        controller={"type": "pd", "kp": [kp], "kd": [kd]}, motion=motion, sensor=sensor, pushes=pushes)
+
+
 @functools.lru_cache(maxsize=None)
 def _arm_scales(robot: str, n_states: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per joint, over states in the motion range: RMS of the nominal gravity torque with a floor of
@@ -348,16 +385,18 @@ def _draw_payload(rng, link, duration) -> dict | None:
 
 
 def draw(seed: int, kind: str = "lever", *, max_samples: int | None = None) -> ScenarioSpec:
-    """The scenario of ``seed``: ``kind`` "lever", "panda", "ur5" or "arm" (Panda or UR5 by the
-    seed). ``max_samples`` caps the log length (default 6,000 for levers, 16,000 for arms) by
+    """The scenario of ``seed``: ``kind`` "lever", "source" (a lever in the source experiment's
+    shape, :func:`_draw_source_lever`), "panda", "ur5" or "arm" (Panda or UR5 by the seed). ``max_samples`` caps the log length (default 6,000 for levers, 16,000 for arms) by
     shortening it. The same seed and kind always give the same spec."""
     rng = np.random.default_rng([int(seed), 0x6D6D6770])
     if kind == "lever":
         return _draw_lever(rng, int(seed), max_samples or 20000)
+    if kind == "source":
+        return _draw_source_lever(rng, int(seed), max_samples or 1500)
     if kind == "arm":
         kind = str(rng.choice(["panda", "ur5"]))
     if kind not in ARMS:
-        raise ValueError(f"kind must be 'lever', 'arm', 'panda' or 'ur5', got {kind!r}")
+        raise ValueError(f"kind must be 'lever', 'source', 'arm', 'panda' or 'ur5', got {kind!r}")
     return _draw_arm(rng, int(seed), kind, max_samples or 16000)
 
 
