@@ -326,6 +326,7 @@ class MultimodalGP(BaseEstimator):
         """
         import time
 
+        from .models.dissipation import fit_dissipative
         from .models.sem import MultimodalSEM, select_n_modes
 
         t0 = time.perf_counter()
@@ -335,8 +336,7 @@ class MultimodalGP(BaseEstimator):
         logs_ = load_logs(sources, robot=robot, diff_window_s=self.diff_window_s, rate_hz=self.rate_hz)
         t_load = time.perf_counter() - t0
         semi = self.semiparametric if robot is not None else "none"
-        fscale = (smooth_sign_scale(np.concatenate([lg.dq for lg in logs_]))
-                  if self.friction_feature else None)
+        fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs_])) if self.friction_feature else None
         band = fscale is not None and rest_band_on(self.rest_band, resolve_mean_basis(self.mean_basis, robot, semi))
         basis_kind = resolve_mean_basis(self.mean_basis, robot, semi, friction=band)
         feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)
@@ -351,10 +351,10 @@ class MultimodalGP(BaseEstimator):
         kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis, muted=feats.muted,
                     rest=feats.rest_band(basis_kind, fscale) if band else None)
-        if self.n_modes == "auto":
-            sem, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw)
-        else:
-            sem, selection = MultimodalSEM(n_modes=int(self.n_modes), **kw).fit(feats.X, feats.Y, **data), None
+        first, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw) if self.n_modes == "auto" else (None, None)
+        K = first.n_modes if first is not None else k_max
+        sem, dissipation = fit_dissipative(lambda: MultimodalSEM(n_modes=K, **kw), feats.X, feats.Y,
+                                           feats.velocity_reversal(basis_kind), first=first, **data)
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)
         self.semiparametric_, self.basis_kind_, self.friction_scale_ = semi, basis_kind, fscale
         self.joint_names_ = logs_[0].joint_names or (robot.joint_names if robot is not None else
@@ -367,7 +367,7 @@ class MultimodalGP(BaseEstimator):
             robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind,
             with_friction=fscale is not None, mode_selection=selection,
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
-        self.report_["windows_shortened_s"] = shortened
+        self.report_.update(windows_shortened_s=shortened, dissipation=dissipation)
         return self
 
     def _set_sem(self, sem) -> None:

@@ -58,7 +58,20 @@ def _summary(model) -> str:
     spec = model.robot_spec_ or {}
     return (f"{rep['n_samples']} samples, robot {spec.get('robot') or spec.get('urdf')}, {rep['n_modes']} mode(s), {rep['disturbance']['n_disturbed']} flagged "
             f"disturbed; {rep['n_sweeps']} sweeps ({'converged' if rep['converged'] else 'sweep limit'}), "
-            f"{rep['timings']['total_s']:.1f} s.{_shortened(rep)}{_selection(rep)}")
+            f"{rep['timings']['total_s']:.1f} s.{_shortened(rep)}{_selection(rep)}{_dissipation(rep)}")
+
+
+def _dissipation(rep: dict) -> str:
+    """What the friction check found, where it refitted (mmgp.models.dissipation)."""
+    d = rep.get("dissipation") or {}
+    fits = d.get("fits") or []
+    if len(fits) < 2:
+        return ""
+    first, kept = fits[0], fits[d["chosen"]]
+    state = "dissipates" if d["physical"] else f"still injects energy on {100 * kept['worst']:.0f}% of sliding samples"
+    return (f" Friction: the first fit's injected energy on {100 * first['worst']:.0f}% of the sliding samples; "
+            f"refitted from labels swapped there ({len(fits)} fits), kept fit {d['chosen'] + 1}, whose friction "
+            f"{state} (log marginal {kept['log_marginal']:.1f}, the runner-up {d['runner_up_gap']:.1f} lower).")
 
 
 def _selection(rep: dict) -> str:

@@ -81,6 +81,15 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
         runs = sel.get("longest_run_s", {})
         rows = [[int(k), v, runs.get(k, runs.get(str(k))), int(k) == sel["chosen"]] for k, v in sel["scores"].items()]
         page.table(["modes", "score", "longest stretch of each mode [s]", "chosen"], rows, kind="mode-selection")
+    fits = (report.get("dissipation") or {}).get("fits") or []
+    if fits:
+        page.section("Friction dissipates", "Share of each fit's sliding samples where its friction pushes the joint "
+                     "along (injects energy) by more than 2 standard deviations; a fit that injects energy is "
+                     "refitted from labels swapped there, and the one that does not is kept (highest evidence).")
+        chosen = report["dissipation"]["chosen"]
+        page.table(["fit", "worst share injecting", "log marginal likelihood", "dissipative", "kept"],
+                   [[i + 1, f["worst"], f["log_marginal"], f["physical"], i == chosen] for i, f in enumerate(fits)],
+                   kind="dissipation")
     page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
                                        _hyperparameter_rows(report), kind="hyperparameters")
     page.section("Summary").json(report, "report")

@@ -52,6 +52,7 @@ class Features:
     t: np.ndarray | None = None
     basis: np.ndarray | None = None   # (T, n, p) rigid-body regressor, when the mean uses it
     muted: np.ndarray | None = None   # (n,) bool: dead-banded torque channels (no vote on pushes)
+    has_sign: bool = False            # X's columns 3n..4n hold the smooth velocity sign
 
     def rest_band(self, basis_kind: str | None, friction_scale: np.ndarray):
         """The EM's :class:`~mmgp.models.mstep.RestBand` for these features: the rest weights of
@@ -70,6 +71,19 @@ class Features:
             branches = tuple(np.concatenate([self.basis[..., :-2 * n], friction_columns(np.full_like(load, s)),
                                              friction_columns(s * load)], axis=2) for s in (1.0, -1.0))
         return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches)
+
+
+    def velocity_reversal(self, basis_kind: str | None):
+        """What changes sign when every joint velocity reverses (a
+        :class:`~mmgp.models.dissipation.VelocityReversal`): dq (X's columns n..2n), its smooth
+        sign (3n..4n, with the friction input) and the basis's dry-friction columns (the last 2n,
+        "+friction"); the rigid-body terms are even in dq."""
+        from .dissipation import VelocityReversal
+
+        n = self.Y.shape[1]
+        dq = list(range(n, 2 * n))
+        sign = list(range(3 * n, 4 * n)) if self.has_sign else []
+        return VelocityReversal(dq, dq + sign, 2 * n if (basis_kind or "").endswith("+friction") else 0)
 
 
 def rest_band_on(setting, rigid_basis: str | None) -> bool:
@@ -145,7 +159,7 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
         # (tuning lever1004).
         sign = np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
         basis = np.concatenate([basis, friction_columns(sign), friction_columns(sign * np.abs(tau_rbd))], axis=2)
-    return Features(X, Y, tau_rbd, list(starts), basis=basis)
+    return Features(X, Y, tau_rbd, list(starts), basis=basis, has_sign=friction_scale is not None)
 
 
 def friction_columns(v: np.ndarray) -> np.ndarray:
