@@ -37,6 +37,18 @@ def _fail(exc: Exception) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+def check_log_headers(logs) -> None:
+    """Refuse a wrong path, file type or column of any of ``logs`` from the file's header alone,
+    before a command loads torch, scikit-learn or Pinocchio (seconds): the answer comes at once."""
+    from ..data.headers import check_log_header
+
+    try:
+        for log in logs:
+            check_log_header(log)
+    except InputError as exc:
+        _fail(exc)
+
+
 DEVICE_HELP = "torch device of the GPs: cpu (default), cuda, cuda:N or auto (cuda when there is one)."
 
 

@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 
 from ..errors import InputError
-from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, _given, _robot_for, app, command_numerics,
+from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, check_log_headers, _given, _robot_for, app, command_numerics,
                      config_option, force_option, out_dir_option, parameter_default, quiet_option, robot_option, urdf_option)
 
 
@@ -21,6 +21,7 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
              force: bool = force_option(),
              quiet: bool = quiet_option()):
     """Locate the sim-vs-real mismatch, name the missing physics, fit it, show the held-out gain."""
+    check_log_headers([log])
     from ..data.outputs import atomic_output_dir
     from ..config import load_settings
     from ..diagnosis import Diagnoser
@@ -52,6 +53,7 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
             force: bool = force_option(),
             quiet: bool = quiet_option()):
     """Held-out (time-block) normalised MSE per joint: rigid body only, GP only, rigid body + GP."""
+    check_log_headers([log])
     from ..evaluation.compare import compare as run_compare, format_compare, write_compare
     from ..data.outputs import atomic_output_dir
     from ..data.logs import read_log

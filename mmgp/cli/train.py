@@ -12,8 +12,8 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, command_numerics,
-                     config_option, force_option, logs_argument, out_dir_option, quiet_option, seed_option,
+from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, check_log_headers,
+                     command_numerics, config_option, force_option, logs_argument, out_dir_option, quiet_option, seed_option,
                      sweep_limit)
 
 
@@ -118,6 +118,7 @@ def train(logs: List[Path] = logs_argument(),
           force: bool = force_option(),
           quiet: bool = quiet_option()):
     """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
+    check_log_headers(logs)
     from ..config import load_settings
     from ..data.outputs import atomic_output_dir
     from ..estimator import MultimodalGP

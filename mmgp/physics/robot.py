@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
-from ..data.logs import read_table_header
+from ..data.headers import read_table_header
 from ..errors import InputError, describe, one_line
 from .inertial import transport_matrix
 
