@@ -423,3 +423,24 @@ def test_friction_on_one_joint_is_judged_on_that_joint():
     for seed in range(6):
         ctx, body, lib, keys, grams = _shared_body_case(seed, amp=0.0)
         assert ForwardCVSelector().fit(lib, keys, grams, w, ctx, start=[body]).selected_ == [body]
+
+
+def test_location_share_is_of_the_measured_torque_and_finds_the_slow_region():
+    # A wrist the nominal model gives no load (tau_rbd = 0): the residual is the whole measured
+    # torque there, 100% of it, not 1e14%; the residual sits where the joint barely moves.
+    from mmgp.diagnosis.location import locate
+
+    T = 2000
+    t = np.arange(T) * 0.01
+    dq = np.column_stack([np.sin(0.3 * t), np.cos(0.2 * t)])
+    q = np.cumsum(dq, 0) * 0.01
+    ddq = np.gradient(dq, t, axis=0)
+    slow = np.abs(dq[:, 1]) < 0.1
+    r = np.column_stack([0.2 * np.sin(t), np.where(slow, 1.0, 0.1)])
+    tau_rbd = np.column_stack([3.0 * np.cos(q[:, 0]), np.zeros(T)])
+    tau = tau_rbd + r
+    loc = locate(r, q, dq, ddq, tau, tau_rbd, t, np.array([0.05, 0.05]), ["j1", "wrist"])
+    assert loc["wrist"]["fraction_of_torque_rms"] == pytest.approx(1.0, rel=1e-9)
+    expected = np.sqrt(np.mean(r[:, 0] ** 2)) / np.sqrt(np.mean(tau[:, 0] ** 2))
+    assert loc["j1"]["fraction_of_torque_rms"] == pytest.approx(expected, rel=1e-9)
+    assert loc["wrist"]["where"].startswith("near zero velocity")

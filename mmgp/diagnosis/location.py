@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def locate(r: np.ndarray, q, dq, ddq, tau_rbd, t, v_s, joint_names) -> dict:
+def locate(r: np.ndarray, q, dq, ddq, tau, tau_rbd, t, v_s, joint_names) -> dict:
     """Where the residual ``r`` (T, n) concentrates, per joint: the region (of five candidates:
     near-zero velocity, high load, a position quintile, high acceleration, a time fifth) whose
-    residual RMS is largest relative to the joint's overall residual RMS."""
+    residual RMS is largest relative to the joint's overall residual RMS. ``fraction_of_torque_rms``
+    is the residual RMS over the measured torque's (``tau``): the nominal torque's can be ~0 (a
+    joint the model gives no load), and the share then read 5e14% on the real TX40."""
     out = {}
     T = r.shape[0]
     for j, jn in enumerate(joint_names):
@@ -32,6 +34,6 @@ def locate(r: np.ndarray, q, dq, ddq, tau_rbd, t, v_s, joint_names) -> dict:
             regions[f"t in [{t[a]:.1f}, {t[b - 1]:.1f}] s"] = m
         ratios = {k: float(np.sqrt(np.mean(rj[m] ** 2)) / rms) for k, m in regions.items() if m.any()}
         where = max(ratios, key=ratios.get)
-        out[jn] = {"rms": rms, "fraction_of_torque_rms": rms / (float(np.sqrt(np.mean(tau_rbd[:, j] ** 2))) + 1e-12),
+        out[jn] = {"rms": rms, "fraction_of_torque_rms": rms / (float(np.sqrt(np.mean(tau[:, j] ** 2))) + 1e-12),
                    "where": where, "ratio": ratios[where], "regions": ratios}
     return out

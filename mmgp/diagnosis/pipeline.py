@@ -344,8 +344,8 @@ class Diagnoser(BaseEstimator):
         from .location import locate
 
         ctx, t = phys.ctx, prob.t
-        loc = locate(prob.r[use], ctx.q[use], ctx.dq[use], ctx.ddq[use], ctx.tau_rbd[use], t[use], ctx.v_s,
-                     ctx.joint_names)
+        loc = locate(prob.r[use], ctx.q[use], ctx.dq[use], ctx.ddq[use], prob.tau[use], ctx.tau_rbd[use], t[use],
+                     ctx.v_s, ctx.joint_names)
         info = {"n_samples": len(t), "n_samples_in_log": prob.n_samples_in_log, "n_candidates": len(prob.library),
                 "n_folds": self.n_folds, "lowpass_hz": prob.f_c, "sign_noise_factor": self.sign_noise_factor,
                 "v_s": ctx.v_s.tolist(),
