@@ -78,5 +78,11 @@ def test_shipped_default_settings_are_the_defaults():
     assert sections["train"] == defaults
     sig = inspect.signature(MultimodalGP.to_compensator).parameters
     assert sections["export"] == {k: p.default for k, p in sig.items() if k != "self"}
+    from mmgp.diagnosis import Diagnoser
+
+    sig = inspect.signature(Diagnoser.__init__).parameters
+    objects = ("self", "effects", "selector", "differentiator")     # Python objects, not settings
+    assert sections["diagnose"] == {k: p.default for k, p in sig.items() if k not in objects}
+    assert set(sections) == {"train", "export", "diagnose"}
     panda = load_settings(ROOT / "configs/panda_modes.yaml", "train", MultimodalGP)
     assert panda == {"n_modes": 2, "disturbance": True, "semiparametric": "residual"}
