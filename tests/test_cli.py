@@ -275,3 +275,15 @@ def test_train_says_why_modes_auto_stopped():
                                  "one of its modes held nowhere for 4.0 s in one stretch.")
     assert _selection({"mode_selection": None}) == ""
 
+
+
+def test_summary_says_why_the_flags_differ_from_the_last_sweep():
+    from mmgp.cli.train import _flags_note
+
+    trace = [{"n_disturbed": 487}]
+    abstained = {"likelihood_trace": trace, "disturbance": {"n_disturbed": 0, "abstained": True, "n_by_scan": 0}}
+    assert "487" in _flags_note(abstained) and "none is flagged" in _flags_note(abstained)
+    averaged = {"likelihood_trace": trace, "disturbance": {"n_disturbed": 470, "abstained": False, "n_by_scan": 3}}
+    assert "487" in _flags_note(averaged) and "scan's (3)" in _flags_note(averaged)
+    same = {"likelihood_trace": trace, "disturbance": {"n_disturbed": 487, "abstained": False}}
+    assert _flags_note(same) == "" and _flags_note({"likelihood_trace": [], "disturbance": {"n_disturbed": 0}}) == ""

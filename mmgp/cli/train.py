@@ -58,7 +58,21 @@ def _summary(model) -> str:
     spec = model.robot_spec_ or {}
     return (f"{rep['n_samples']} samples, robot {spec.get('robot') or spec.get('urdf')}, {rep['n_modes']} mode(s), {rep['disturbance']['n_disturbed']} flagged "
             f"disturbed; {rep['n_sweeps']} sweeps ({'converged' if rep['converged'] else 'sweep limit'}), "
-            f"{rep['timings']['total_s']:.1f} s.{_shortened(rep)}{_selection(rep)}{_dissipation(rep)}")
+            f"{rep['timings']['total_s']:.1f} s.{_flags_note(rep)}{_shortened(rep)}{_selection(rep)}{_dissipation(rep)}")
+
+
+def _flags_note(rep: dict) -> str:
+    """Why the flagged count differs from the last sweep's "disturbed" (issue 31: 487 then 0)."""
+    trace = rep.get("likelihood_trace") or []
+    dist = rep["disturbance"]
+    if not trace or trace[-1]["n_disturbed"] == dist["n_disturbed"]:
+        return ""
+    if dist.get("abstained"):
+        return (f" The sweeps held {trace[-1]['n_disturbed']} samples in the disturbance state, but it did not raise "
+                "the evidence by more than its price (a log without pushes), so none is flagged.")
+    return (f" The last sweep held {trace[-1]['n_disturbed']} in the disturbance state; the flags are the "
+            "averaged labels of the last sweeps, without pushes shorter than min_push_s, plus the "
+            f"sustained-offset scan's ({dist.get('n_by_scan', 0)}).")
 
 
 def _dissipation(rep: dict) -> str:
