@@ -52,6 +52,9 @@ def run(name: str, tmp: Path, gp3_max: int) -> None:
     z = np.abs(feats.Y - last["means"][0]) / np.sqrt(last["vars"][0])
     top = np.bincount(z[flags].argmax(1), minlength=feats.Y.shape[1])   # empty flags: zeros
     print(f"\n=== real {name}: {len(flags)} samples at {1 / dt:.0f} Hz, {feats.Y.shape[1]} joints; mmgp {secs:.0f} s")
+    d = m.report_["dissipation"]
+    print(f"friction check: {len(d['fits'])} fit(s), worst injecting share per fit "
+          f"{[round(f['worst'], 3) for f in d['fits']]}, kept fit {d['chosen'] + 1}")
     longest = max((b - a for a, b in runs(flags)), default=0) * dt
     print(f"mmgp flagged {flags.mean():.2%}; longest flagged stretch {longest:.2f} s; of the "
           f"flagged samples every joint at rest {rest[flags].all(1).mean() if flags.any() else 0:.0%}, "

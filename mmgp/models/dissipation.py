@@ -24,9 +24,15 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..physics.context import smooth_sign_scale
+from ..gp.exact import ExactGP
+from .mstep import evenly_spaced
 
 # Restarts from swapped labels while the friction still injects energy (each is one more EM run).
 MAX_RESTARTS = 2
+# Sliding samples per mode the check looks at (evenly spaced), and the support of the GP its
+# variances come from (:func:`_variance_gp`): the check then costs seconds on 20,000 samples.
+CHECK_POINTS = 4000
+VARIANCE_SUPPORT = 1000
 # A sliding sample injects energy when its friction's sign is wrong by more than this many
 # posterior standard deviations (one-sided: a dissipative model crosses it on ~2% of samples).
 Z_INJECT = 2.0
@@ -56,46 +62,72 @@ class VelocityReversal:
         return out
 
 
-def odd_part(gp, coef, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReversal) -> tuple[np.ndarray, np.ndarray]:
-    """The model's part odd in the joint velocities at inputs X (T, d) (and basis (T, n, p) when
-    ``coef`` (n, p) is given) and its posterior standard deviation, both (T, n) in N*m. The
-    deviation treats the two GP predictions as independent (it overstates the spread where
-    they are correlated, so the check errs towards calling a model dissipative)."""
-    mu_a, sd_a = gp.predict(X, include_noise=False)
-    mu_b, sd_b = gp.predict(rev.flip(X), include_noise=False)
+def odd_part(gp, coef, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReversal) -> np.ndarray:
+    """The model's part odd in the joint velocities (T, n) in N*m at inputs X (T, d) (and basis
+    (T, n, p) when ``coef`` (n, p) is given): two mean predictions, no variances (those of a GP on
+    a whole mode's samples cost O(T * support^2))."""
     T = len(X)
-    odd = 0.5 * (np.asarray(mu_a).reshape(T, -1) - np.asarray(mu_b).reshape(T, -1))
-    sd = 0.5 * np.sqrt(np.asarray(sd_a).reshape(T, -1) ** 2 + np.asarray(sd_b).reshape(T, -1) ** 2)
+    mu_a = np.asarray(gp.predict(X, return_std=False)).reshape(T, -1)
+    mu_b = np.asarray(gp.predict(rev.flip(X), return_std=False)).reshape(T, -1)
+    odd = 0.5 * (mu_a - mu_b)
     if coef is not None:
-        flipped = rev.flip_basis(basis)
-        odd = odd + 0.5 * np.einsum("tjp,jp->tj", basis - flipped, coef)
-    return odd, sd
+        odd = odd + 0.5 * np.einsum("tjp,jp->tj", basis - rev.flip_basis(basis), coef)
+    return odd
 
 
-def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReversal) -> dict:
+def _variance_gp(sem, k: int):
+    """The GP whose latent variance bounds mode ``k``'s: the mode's own where its support is at
+    most :data:`VARIANCE_SUPPORT` samples, else an exact GP with the same hyperparameters on that
+    many of them, evenly spaced (conditioned on fewer samples, its variance is at least the
+    full GP's, so the check errs towards calling a model dissipative; the full GP's costs
+    O(samples * support^2))."""
+    gp = sem.gps_[k]
+    Xs, Ys = sem.support_X_[k], sem.support_Y_[k]
+    if isinstance(gp, ExactGP) and len(Xs) <= VARIANCE_SUPPORT:
+        return gp
+    sub = evenly_spaced(np.arange(len(Xs)), VARIANCE_SUPPORT)
+    small = ExactGP(ard=gp.ard, independent_outputs=True, seed=0, device=str(gp.dev_))
+    return small.fit(Xs[sub], Ys[sub], hyper=gp.hyper_, optimise=False)
+
+
+def _odd_z(sem, k: int, rows: np.ndarray, X: np.ndarray, basis, rev: VelocityReversal, dq: np.ndarray):
+    """(odd part (M, n), its z-score with the motion's sign (M, n)) of mode ``k`` at samples
+    ``rows``: the spread is the latent posterior deviation of the mean of the two predictions
+    (taken as independent, which overstates it where they are correlated)."""
+    Xr = X[rows]
+    odd = odd_part(sem.gps_[k], sem.coef_[k], Xr, None if basis is None else basis[rows], rev)
+    var_gp = _variance_gp(sem, k)
+    _, sd_a = var_gp.predict(Xr, include_noise=False)
+    _, sd_b = var_gp.predict(rev.flip(Xr), include_noise=False)
+    M = len(rows)
+    sd = 0.5 * np.sqrt(np.asarray(sd_a).reshape(M, -1) ** 2 + np.asarray(sd_b).reshape(M, -1) ** 2)
+    return odd, odd * np.sign(dq[rows]) / np.maximum(sd, 1e-12)
+
+
+def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReversal,
+                 max_points: int = CHECK_POINTS) -> dict:
     """Per mode and joint, over the mode's undisturbed samples where the joint slides (|dq| above
-    its smooth-sign scale): ``injected`` the share of them whose friction torque has the motion's
-    sign by more than :data:`Z_INJECT` standard deviations, ``work_share`` the friction work
-    done on the joint there divided by the total |work| (0: all dissipated, 1: all injected).
-    ``worst`` the largest ``injected``; ``physical`` whether no joint of any mode exceeds twice
-    the share a dissipative model shows by chance (~2.3%, doubled: the predictions are correlated)."""
+    its smooth-sign scale; at most ``max_points`` of them, evenly spaced): ``injected`` the share
+    whose friction torque has the motion's sign by more than :data:`Z_INJECT` standard
+    deviations, ``work_share`` the friction work done on the joint there divided by the total
+    |work| (0: all dissipated, 1: all injected). ``worst`` the largest ``injected``;
+    ``physical`` whether no joint of any mode exceeds twice the share a dissipative model shows
+    by chance (~2.3%, doubled: the predictions are correlated)."""
     dq = X[:, list(rev.dq_cols)]
     sliding = np.abs(dq) > smooth_sign_scale(dq)
     labels, clean = sem.labels_, ~sem.disturbed_
     injected = np.zeros((len(sem.gps_), dq.shape[1]))
     work = np.zeros_like(injected)
-    for k, gp in enumerate(sem.gps_):
-        rows = np.flatnonzero((labels == k) & clean & sliding.any(1))
+    for k in range(len(sem.gps_)):
+        rows = evenly_spaced(np.flatnonzero((labels == k) & clean & sliding.any(1)), max_points)
         if not len(rows):
             continue
-        odd, sd = odd_part(gp, sem.coef_[k], X[rows], None if basis is None else basis[rows], rev)
-        s = np.sign(dq[rows])
+        odd, z = _odd_z(sem, k, rows, X, basis, rev, dq)
         for j in range(dq.shape[1]):
             on = sliding[rows, j]
             if not on.any():
                 continue
-            z = odd[on, j] * s[on, j] / np.maximum(sd[on, j], 1e-12)
-            injected[k, j] = float(np.mean(z < -Z_INJECT))
+            injected[k, j] = float(np.mean(z[on, j] < -Z_INJECT))
             power = odd[on, j] * dq[rows[on], j]
             work[k, j] = float(np.clip(-power, 0, None).sum() / max(np.abs(power).sum(), 1e-300))
     worst = float(injected.max()) if injected.size else 0.0
@@ -115,13 +147,11 @@ def injecting_samples(sem, X: np.ndarray, basis: np.ndarray | None, rev: Velocit
     dq = X[:, list(rev.dq_cols)]
     sliding = np.abs(dq) > smooth_sign_scale(dq)
     out = np.zeros(len(X), bool)
-    for k, gp in enumerate(sem.gps_):
+    for k in range(len(sem.gps_)):
         rows = np.flatnonzero((sem.labels_ == k) & sliding.any(1))
-        if not len(rows):
-            continue
-        odd, sd = odd_part(gp, sem.coef_[k], X[rows], None if basis is None else basis[rows], rev)
-        z = odd * np.sign(dq[rows]) / np.maximum(sd, 1e-12)
-        out[rows] = ((z < -Z_INJECT) & sliding[rows]).any(1)
+        if len(rows):
+            _, z = _odd_z(sem, k, rows, X, basis, rev, dq)
+            out[rows] = ((z < -Z_INJECT) & sliding[rows]).any(1)
     return out
 
 
