@@ -7,7 +7,6 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
 from mmgp.gp.exact import ExactGP
 from mmgp.models.dissipation import VelocityReversal, energy_check, injecting_samples, odd_part
@@ -95,9 +94,7 @@ def test_energy_check_passes_dissipative_friction_and_catches_injected_energy():
 
 
 def test_a_first_fit_that_injects_energy_is_not_returned():
-    pytest.importorskip("mujoco")
     from mmgp import MultimodalGP
-    from mmgp.data.logs import read_labels
     from mmgp.evaluation.metrics import classification_figures
     from mmgp.sim import actuator_replica
 

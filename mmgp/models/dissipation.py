@@ -113,8 +113,7 @@ def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReve
     |work| (0: all dissipated, 1: all injected). ``worst`` the largest ``injected``;
     ``physical`` whether no joint of any mode exceeds twice the share a dissipative model shows
     by chance (~2.3%, doubled: the predictions are correlated)."""
-    dq = X[:, list(rev.dq_cols)]
-    sliding = np.abs(dq) > smooth_sign_scale(dq)
+    dq, sliding = _sliding(X, rev)
     labels, clean = sem.labels_, ~sem.disturbed_
     injected = np.zeros((len(sem.gps_), dq.shape[1]))
     work = np.zeros_like(injected)
@@ -135,6 +134,13 @@ def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReve
             "physical": worst <= 2 * _chance_share()}
 
 
+def _sliding(X: np.ndarray, rev: VelocityReversal) -> tuple[np.ndarray, np.ndarray]:
+    """The joint velocities (T, n) of inputs X and where each joint slides (|dq| above its
+    smooth-sign scale), (T, n) bool."""
+    dq = X[:, list(rev.dq_cols)]
+    return dq, np.abs(dq) > smooth_sign_scale(dq)
+
+
 def _chance_share() -> float:
     from scipy.stats import norm
 
@@ -144,8 +150,7 @@ def _chance_share() -> float:
 def injecting_samples(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReversal) -> np.ndarray:
     """(T,) bool: samples where some joint slides and the model of the sample's mode has friction
     there that injects energy by more than :data:`Z_INJECT` standard deviations."""
-    dq = X[:, list(rev.dq_cols)]
-    sliding = np.abs(dq) > smooth_sign_scale(dq)
+    dq, sliding = _sliding(X, rev)
     out = np.zeros(len(X), bool)
     for k in range(len(sem.gps_)):
         rows = np.flatnonzero((sem.labels_ == k) & sliding.any(1))

@@ -95,8 +95,7 @@ def _replica_reference(rng):
     return reference, {"a": [a0, a1, a2], "T": [T1, T2], "phase": [p1, p2]}
 
 
-def actuator_replica(seed: int = 0, n_samples: int = 330, rate_hz: float = 20.0, *, kp: float | None = None,
-                     kd: float | None = None, push_torque: tuple[float, float] = (1.5, 4.0)) -> Recording:
+def actuator_replica(seed: int = 0, n_samples: int = 330, rate_hz: float = 20.0) -> Recording:
     """1-DOF replica of the source experiment: quasi-static PD exploration of a lever under gravity
     with load-dependent dry friction and intermittent hand-like pushes.
 
@@ -106,9 +105,7 @@ def actuator_replica(seed: int = 0, n_samples: int = 330, rate_hz: float = 20.0,
     rad with T1 ~ U(14, 20) s, T2 ~ U(5, 8) s (peak speed < 0.75 rad/s; inertial torque < 0.02 N*m).
     Pushes: a force perpendicular to the lever at the load, bumps of U(0.3, 2) s (sin^2 ramps of
     U(0.1, 0.25) s around a flat top), random sign,
-    peak joint torque U(``push_torque``) N*m (default 1.5-4 N*m: 7.5-20 N at the load), gaps U(1.2, 3.5) s
-    (about a third of the samples pushed). ``kp`` (N*m/rad) and ``kd`` (N*m*s/rad) override the
-    PD gains of :data:`REPLICA` (a stiffer loop holds the lever against firmer pushes).
+    peak joint torque U(1.5, 4) N*m (7.5-20 N at the load), gaps U(1.2, 3.5) s (about a third of the samples pushed).
     Logged: q (2^14 counts/rev encoder) and tau (+ N(0, 0.02) N*m); dq/ddq are left out for mmgp
     to estimate (the true ones are in ``info``). Labels: :data:`~mmgp.sim.recording.LABEL_RULE`, mode 0.
     """
@@ -120,7 +117,7 @@ def actuator_replica(seed: int = 0, n_samples: int = 330, rate_hz: float = 20.0,
     L = P["lever_length"]
     pushes = []
     for t0, d in push_schedule(rng, duration, gap=(1.2, 3.5), dur=(0.3, 2.0), first=(0.8, 2.5)):
-        tau_peak = rng.choice([-1.0, 1.0]) * rng.uniform(*push_torque)
+        tau_peak = rng.choice([-1.0, 1.0]) * rng.uniform(1.5, 4.0)
         # Body z of the load is perpendicular to the lever in its plane of motion; +z gives +tau.
         pushes.append(Push(t0=float(t0), duration=float(d), body="load", force=(0.0, 0.0, float(tau_peak / L)),
                            frame="body", ramp=float(rng.uniform(0.1, 0.25))))
@@ -129,13 +126,12 @@ def actuator_replica(seed: int = 0, n_samples: int = 330, rate_hz: float = 20.0,
     def load_dependent_friction(t, m, d):
         m.dof_frictionloss[0] = c + beta * abs(d.ctrl[0])
 
-    gains = {"kp": P["kp"] if kp is None else float(kp), "kd": P["kd"] if kd is None else float(kd)}
-    rec = simulate(model, reference, duration, rate_hz=rate_hz, **gains, pushes=pushes,
+    rec = simulate(model, reference, duration, rate_hz=rate_hz, kp=P["kp"], kd=P["kd"], pushes=pushes,
                    before_step=load_dependent_friction, q_resolution=2 * np.pi / P["encoder_counts"],
                    tau_noise=P["tau_noise"], log_dq=False, seed=int(rng.integers(2 ** 31)),
                    robot=None, joint_names=["lever_joint"], settle=2.0)
     rec.info.update({
-        "generator": "actuator_replica", "seed": seed, "physics": {**P, **gains, "push_torque": list(push_torque)},
+        "generator": "actuator_replica", "seed": seed, "physics": dict(P),
         "static_torque": "(load_mass*L + lever_mass*L/2) * 9.81 * cos(q)",
         "friction_model": "frictionloss = friction_c + friction_beta * |motor torque|, updated every step",
         "reference": ref_info,
