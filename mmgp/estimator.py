@@ -9,7 +9,6 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from sklearn.base import BaseEstimator
@@ -24,7 +23,7 @@ from .gp.linalg import resolve_device
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
 from .models.features import build_features, load_logs, resolve_mean_basis, rest_band_on, state_features
-from .models.report import training_report
+from .models.report import labels_frame, training_report
 
 MODEL_FORMAT = "mmgp-model"
 MODEL_VERSION = 3
@@ -168,7 +167,8 @@ class MultimodalGP(BaseEstimator):
     labels_ : DataFrame, the columns of ``labels.parquet`` (docs/contract.md): t, (log, with
         several logs), mode, disturbed, p_disturbed, p_mode_<k>.
     modes_ (T,) int, nominal mode 0; p_mode_ (T, K); p_disturbed_ (T,); disturbed_ (T,) bool.
-    report_ : dict, the content of ``report.json``.
+    report_ : dict, the content of ``report.json``; ``heldout``: the held-out score per joint
+        (:func:`mmgp.evaluation.heldout.heldout_score`: model, rigid body, mean).
     n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
     friction_scale_ * ((n,) v_s in rad/s, or None), basis_kind_ *, basis_coef_ * (per mode
     (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
@@ -326,6 +326,7 @@ class MultimodalGP(BaseEstimator):
         """
         import time
 
+        from .evaluation.heldout import heldout_score
         from .models.dissipation import fit_dissipative
         from .models.sem import MultimodalSEM, select_n_modes
 
@@ -361,13 +362,14 @@ class MultimodalGP(BaseEstimator):
                                                      [f"joint_{j}" for j in range(logs_[0].n_joints)])
         self._set_sem(sem)
         self.logs_, self.features_ = logs_, feats
-        self.labels_ = _labels_frame(sem, logs_)
+        self.labels_ = labels_frame(sem, logs_)
         self.report_ = training_report(
             settings=self._settings_record(), sem=sem, logs=logs_, joint_names=self.joint_names_,
             robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind,
             with_friction=fscale is not None, mode_selection=selection,
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
-        self.report_.update(windows_shortened_s=shortened, dissipation=dissipation)
+        self.report_.update(windows_shortened_s=shortened, dissipation=dissipation, heldout=heldout_score(self))
+        self.report_["timings"].update(heldout_s=self.report_["heldout"]["seconds"], total_s=time.perf_counter() - t0)
         return self
 
     def _set_sem(self, sem) -> None:
@@ -585,16 +587,3 @@ def _robot_spec(robot) -> dict | None:
     name = getattr(robot, "name", None)
     return {"robot": name, "urdf": None if name else str(robot.urdf_path), "joint_names": robot.joint_names}
 
-
-def _labels_frame(sem, logs: Sequence[RobotLog]):
-    """The contract's labels table: t, (log), mode, disturbed, p_disturbed, p_mode_<k>."""
-    import pandas as pd
-
-    t = np.concatenate([lg.t for lg in logs])
-    df = pd.DataFrame({"t": t, "mode": sem.labels_.astype(np.int64),
-                       "disturbed": sem.disturbed_.astype(np.int64), "p_disturbed": sem.p_disturbed_})
-    for k in range(sem.p_mode_.shape[1]):
-        df[f"p_mode_{k}"] = sem.p_mode_[:, k]
-    if len(logs) > 1:
-        df.insert(1, "log", np.concatenate([np.full(lg.n_samples, i) for i, lg in enumerate(logs)]))
-    return df

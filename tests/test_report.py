@@ -174,6 +174,9 @@ def test_training_report_shows_the_json_and_the_plots(trained):
     want = [(hp["mode"], j["joint"], j["signal_std"], j["noise_std"]) for hp in rep["hyperparameters"]
             for j in hp["per_joint"]]
     assert [(number(r[0]), r[1]["text"], number(r[2]), number(r[3])) for r in rows] == want
+    held = rep["heldout"]["nmse"]            # the replica names no robot: no rigid-body figure
+    assert [[c["text"] if c["value"] is None else number(c) for c in r] for r in page.table("heldout")] == \
+        [[name, held["model"][j], "\u2013", held["mean"][j]] for j, name in enumerate(rep["heldout"]["joint_names"])]
     assert page.json["report"] == rep
 
 

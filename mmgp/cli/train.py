@@ -147,6 +147,10 @@ def train(logs: List[Path] = logs_argument(),
     except InputError as exc:
         _fail(exc)
     typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots, report.html.")
+    if model.report_.get("heldout"):
+        from ..evaluation.heldout import format_heldout
+
+        typer.echo(format_heldout(model.report_["heldout"]))
     for line in model.report_.get("warnings", []):
         typer.echo(f"warning: {line}", err=True)
 

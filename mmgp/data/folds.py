@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .differentiation import SavitzkyGolay
+
 
 def time_block_folds(T: int, n_folds: int = 5, gap: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
     """Contiguous time blocks as (train_idx, test_idx) pairs.
@@ -22,6 +24,19 @@ def time_block_folds(T: int, n_folds: int = 5, gap: int = 0) -> list[tuple[np.nd
         keep[max(0, lo - gap):min(T, hi + gap)] = False
         folds.append((np.flatnonzero(keep), test))
     return folds
+
+
+def default_gap(t: np.ndarray, window_s: float | None = None) -> int:
+    """Samples to keep out of training on each side of a test block for a log sampled at ``t`` (T,) s
+    whose derivatives were estimated with Savitzky-Golay windows of at most ``window_s`` seconds
+    (None: the differentiator's default window, what ``mmgp compare`` estimates with).
+
+    Two samples whose derivative estimates share no raw sample are at least one window apart
+    (each estimate reads half a window on each side).
+    """
+    t = np.asarray(t, dtype=np.float64)
+    dt = float(np.median(np.diff(t)))
+    return int(SavitzkyGolay(window_s=window_s).window_samples(dt, len(t)))
 
 
 def spread_subset(idx: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

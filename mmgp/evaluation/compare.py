@@ -38,23 +38,11 @@ from ..gp.objectives import leave_block_out
 from ..data.logs import RobotLog
 from ..errors import InputError
 from ..data.outputs import atomic_write_bytes, jsonable
-from ..data.differentiation import SavitzkyGolay
-from ..data.folds import spread_subset, time_block_folds
+from ..data.folds import default_gap, spread_subset, time_block_folds
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
 METHODS = tuple(COMPARE_LABELS)
-
-
-def default_gap(t: np.ndarray) -> int:
-    """Samples to keep out of training on each side of a test block for a log sampled at ``t`` (T,) s.
-
-    Two samples whose derivative estimates share no raw sample are at least one Savitzky-Golay
-    window apart (each estimate reads half a window on each side).
-    """
-    t = np.asarray(t, dtype=np.float64)
-    dt = float(np.median(np.diff(t)))
-    return int(SavitzkyGolay().window_samples(dt, len(t)))
 
 
 def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: str, block_s: float) -> ExactGP:

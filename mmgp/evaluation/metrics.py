@@ -12,6 +12,8 @@ SOURCE_FIGURES = {"unperturbed_correct": 192 / 235, "perturbed_missed": 14 / 92,
 
 # The predictors `mmgp compare` scores, in table order, with the names tables and plots show.
 COMPARE_LABELS = {"rigid_body": "rigid body only", "gp": "GP only", "rigid_body_gp": "rigid body + GP"}
+# The predictors the held-out score of `mmgp train` compares (mmgp.evaluation.heldout), in table order.
+HELDOUT_LABELS = {"model": "model", "rigid_body": "rigid body", "mean": "mean"}
 
 
 def classification_figures(pred: pd.DataFrame, truth: pd.DataFrame) -> dict:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .html import HtmlReport
-from .metrics import COMPARE_LABELS, SOURCE_FIGURES
+from .metrics import COMPARE_LABELS, HELDOUT_LABELS, SOURCE_FIGURES
 
 __all__ = ["write_training_report", "write_compare_report"]
 
@@ -90,12 +90,29 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
         page.table(["fit", "worst share injecting", "log marginal likelihood", "dissipative", "kept"],
                    [[i + 1, f["worst"], f["log_marginal"], f["physical"], i == chosen] for i, f in enumerate(fits)],
                    kind="dissipation")
+    _heldout_section(page, report.get("heldout"))
     page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
                                        _hyperparameter_rows(report), kind="hyperparameters")
     page.section("Summary").json(report, "report")
     if evaluation is not None:
         page.json(evaluation, "evaluation")
     return page.write(out / "report.html")
+
+
+def _heldout_section(page: HtmlReport, heldout: dict | None) -> None:
+    """The held-out normalised MSE per joint of the model, the rigid body and the mean (report.json
+    ``heldout``, :func:`mmgp.evaluation.heldout.heldout_score`)."""
+    if not heldout:
+        return
+    page.section("Held-out score", f"Normalised MSE per joint over {heldout['n_folds']} time blocks (each block "
+                 f"predicted from the others, {heldout['gap']} samples on each side kept out): 0 is perfect, 1 is "
+                 f"predicting the torque's mean. Scored: {heldout['scored']} ({heldout['n_scored']} scored, "
+                 f"{heldout['n_disturbed_left_out']} disturbed left out). The model's labels and hyperparameters "
+                 "are the trained ones; each block's GP conditions on the other blocks only.")
+    nmse = heldout["nmse"]
+    rows = [[name] + [None if nmse[m] is None else nmse[m][j] for m in HELDOUT_LABELS]
+            for j, name in enumerate(heldout["joint_names"])]
+    page.table(["joint"] + [f"{label} nMSE" for label in HELDOUT_LABELS.values()], rows, kind="heldout")
 
 
 def write_compare_report(out_dir: str | Path, result: dict) -> Path:

@@ -1,4 +1,5 @@
-"""The training report (``report.json``): what was learned, from what, and how the EM went."""
+"""The training report (``report.json``): what was learned, from what, and how the EM went; and the
+labels table (``labels.parquet``)."""
 from __future__ import annotations
 
 import math
@@ -64,3 +65,17 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
         "n_sweeps": int(sem.n_sweeps_),
         "timings": timings,
     }
+
+
+def labels_frame(sem, logs: Sequence[RobotLog]):
+    """The contract's labels table: t, (log), mode, disturbed, p_disturbed, p_mode_<k>."""
+    import pandas as pd
+
+    t = np.concatenate([lg.t for lg in logs])
+    df = pd.DataFrame({"t": t, "mode": sem.labels_.astype(np.int64),
+                       "disturbed": sem.disturbed_.astype(np.int64), "p_disturbed": sem.p_disturbed_})
+    for k in range(sem.p_mode_.shape[1]):
+        df[f"p_mode_{k}"] = sem.p_mode_[:, k]
+    if len(logs) > 1:
+        df.insert(1, "log", np.concatenate([np.full(lg.n_samples, i) for i, lg in enumerate(logs)]))
+    return df

@@ -181,7 +181,8 @@ class MultimodalSEM:
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
         ``trace_`` (list of SweepRecord), ``converged_``, ``n_sweeps_``, ``timings_``,
-        ``coef_`` (K basis coefficient arrays (n, p), or None each), ``basis_rank_``, and
+        ``coef_`` (K basis coefficient arrays (n, p), or None each), ``members_`` (K index
+        arrays: the samples each mode's coefficients and GP learnt from), ``basis_rank_``, and
         ``last_sweep_`` (the last sweep's per-mode means/variances (T, n), log-likelihoods (T, S),
         calibration, sigma_d and states: for diagnosing where errors sit; None without sweeps).
         Mode order in ``last_sweep_`` is the sweep's internal one, not the final nominal-first
@@ -481,7 +482,9 @@ class MultimodalSEM:
         # support_Y_ holds the GP's targets: torques minus the basis part when there is one.
         X, Y = fitter.X, fitter.Y
         n = Y.shape[1]
-        self.gps_, self.support_X_, self.support_Y_, self.coef_ = [], [], [], []
+        # members_: per mode, the samples its mean coefficients and GP learnt from (before the
+        # support's subsampling; mmgp.evaluation.heldout conditions its fold GPs on these)
+        self.gps_, self.support_X_, self.support_Y_, self.coef_, self.members_ = [], [], [], [], []
         for i, k in enumerate(order):
             members = np.flatnonzero((self.labels_ == i) & ~self.disturbed_)
             if stuck is not None and (~stuck[k][members]).sum() >= 0.25 * len(members):
@@ -498,6 +501,7 @@ class MultimodalSEM:
                 coef = fitter.basis_coefficients(members)
                 Yk = Y - np.einsum("tjp,jp->tj", fitter.basis, coef)
             self.coef_.append(coef)
+            self.members_.append(members)
             if self.final_support is not None:
                 members = evenly_spaced(members, self.final_support)
             self.gps_.append(fitter.final_gp(members, Yk, hypers[k]))
