@@ -2,7 +2,7 @@
 
 50 logs of the 1-DOF actuator lever (MuJoCo, ``mmgp.sim.concealed``: a 0.73 kg load on a 0.2 m
 lever, Coulomb friction in the simulator, torque noise, velocities estimated from positions),
-one per day from 2026-01-01 (``log_time`` in each log's metadata), each on its own random
+one per day from 2026-01-01 (``start_time`` in each log's metadata), each on its own random
 trajectory. The friction is 0.3 N*m up to log ``start - 1`` and then rises by ``slope`` N*m per
 log (gearbox wear): log ``start`` has 0.3 + slope. The same command runs twice in this process's
 environment, ``--serial`` and on a local Ray with ``--workers`` (default: every core), and the
@@ -51,7 +51,7 @@ def generate(folder: Path, n_logs: int, start: int, slope: float, samples: int) 
         day = pd.Timestamp("2026-01-01T06:00:00Z") + pd.Timedelta(days=i)
         write_table(folder / f"lever_{i:02d}.parquet", pd.DataFrame(cols),
                     metadata={"urdf": "actuator.urdf", "joint_names": json.dumps(["lever_joint"]),
-                              "log_time": day.isoformat()})
+                              "start_time": day.isoformat()})
 
 
 def run_fleet(logs: Path, out: Path, extra: list[str]) -> float:

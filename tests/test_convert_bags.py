@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 from rosbags.rosbag1 import Writer as Writer1
@@ -210,3 +212,38 @@ def test_cli_bag_and_bad_bags(tmp_path):
     assert res.exit_code == 2
     assert res.output.count("error:") == 1 and "cannot read as a ROS 1 bag" in res.output and str(junk) in res.output
     assert not (tmp_path / "j.parquet").exists() and junk.read_bytes() == b"not a bag at all\n" * 10
+
+
+def _utc_of_ns(ns: int) -> datetime:
+    """The reference: the stamp as pandas reads Unix ns, to the microsecond a datetime holds."""
+    return pd.Timestamp(int(ns), unit="ns", tz="UTC").floor("us").to_pydatetime()
+
+
+@pytest.mark.parametrize("ros1", [True, False], ids=["ros1", "ros2"])
+def test_start_time_from_the_first_stamp(tmp_path, ros1):
+    from mmgp.fleet.work import log_time
+
+    store = _store(ros1)
+    stamps, q, dq, tau = sample_data(seed=2)
+    items = arm_messages(store, ros1, stamps, q, dq, tau)
+    items[0], items[1] = items[1], items[0]  # the earliest stamp recorded second: still the start
+    bag = write_bag(tmp_path / ("run.bag" if ros1 else "run"), ros1, {"/joint_states": items}, store)
+    (out,) = convert(bag, tmp_path / "log.parquet")
+    start = pq.read_schema(out).metadata[b"start_time"].decode()
+    assert start.endswith("+00:00") and datetime.fromisoformat(start) == _utc_of_ns(stamps.min())
+    assert log_time(out) == (_utc_of_ns(stamps.min()).timestamp(), "start_time")  # what the fleet reads
+    franka = [(int(s), FRANKA, store.types[FRANKA](header=_header(store, ros1, int(s)), q=q[k], dq=dq[k],
+                                                   tau_J=tau[k], tau_J_d=tau[k], time=0.0))
+              for k, s in enumerate(stamps)]
+    fbag = write_bag(tmp_path / ("f.bag" if ros1 else "f"), ros1, {"/franka_states": franka}, store)
+    (log,) = read_input(fbag)
+    assert datetime.fromisoformat(log.metadata["start_time"]) == _utc_of_ns(stamps.min())
+
+
+def test_no_start_time_from_simulated_time(tmp_path):
+    store = _store(False)
+    _, q, dq, tau = sample_data()
+    sim = 5_000_000_000 + np.arange(len(q), dtype=np.int64) * 10_000_000  # a simulator's clock, from 0
+    bag = write_bag(tmp_path / "sim", False, {"/joint_states": arm_messages(store, False, sim, q, dq, tau)}, store)
+    (out,) = convert(bag, tmp_path / "log.parquet")
+    assert b"start_time" not in pq.read_schema(out).metadata

@@ -180,3 +180,31 @@ def test_cli_bad_inputs_untouched(tmp_path):
     res = runner.invoke(app, ["convert", str(path), "--out", str(tmp_path / "o.parquet"), "--map", str(mp)])
     assert res.exit_code == 2 and "map key 'robot' must be a string" in res.output
     assert path.read_text() == text
+
+
+def test_start_time_from_absolute_time_columns(tmp_path):
+    from datetime import datetime, timezone
+
+    # a JointState export: the first header stamp (Unix ns) is the start
+    T, first = 20, 1_764_235_800_000_000_000  # 2025-11-27T09:30:00Z
+    header = ["%time", "field.header.stamp", "field.name0", "field.position0", "field.effort0"]
+    rows = [",".join([str(first + k * 10**7 + 55), str(first + k * 10**7), "j", repr(0.1 * k), "0.5"])
+            for k in range(T)]
+    path = tmp_path / "js.csv"
+    path.write_text("\n".join([",".join(header)] + rows) + "\n")
+    (log,) = read_input(path)
+    assert log.metadata["start_time"] == "2025-11-27T09:30:00+00:00"
+    # a mapped CSV whose time column is Unix time in ms: start_time from its first sample, t kept
+    t_ms = 1_764_235_800_250.0 + 4.0 * np.arange(T)
+    csv = write_table(tmp_path / "abs.csv", ["ms", "p", "f"], np.column_stack([t_ms, np.zeros(T), np.ones(T)]))
+    mp = tmp_path / "m.yaml"
+    mp.write_text("columns: {t: ms, q: [p], tau: [f]}\nunits: {t: ms}\n")
+    (out,) = convert(csv, tmp_path / "abs.parquet", map_path=mp)
+    log = read_log(out)
+    assert datetime.fromisoformat(log.metadata["start_time"]) == datetime(2025, 11, 27, 9, 30, 0, 250000,
+                                                                          tzinfo=timezone.utc)
+    np.testing.assert_allclose(log.t, t_ms / 1000.0)
+    # RTDE's timestamp counts from the controller's start: no wall clock, no start_time
+    t, f = rtde_data()
+    (log,) = read_input(rtde_file(tmp_path / "rec.csv", f, t))
+    assert "start_time" not in log.metadata

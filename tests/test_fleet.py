@@ -45,11 +45,15 @@ def lever_frame(robot, seed: int, tau_c: float, n: int = 1200) -> pd.DataFrame:
     return pd.DataFrame({"t": t, "q_0": q[:, 0], "dq_0": dq[:, 0], "ddq_0": ddq[:, 0], "tau_0": tau[:, 0]})
 
 
-def write_lever_log(folder, name: str, seed: int, tau_c: float, log_time: str | None = None, n: int = 1200):
+def write_lever_log(folder, name: str, seed: int, tau_c: float, start_time: str | None = None, n: int = 1200,
+                    legacy_time: str | None = None):
+    """A lever log; ``start_time`` is the contract's key, ``legacy_time`` the key older fleets read."""
     robot = RobotModel.from_urdf(folder / "lever.urdf")
     meta = {"urdf": "lever.urdf", "joint_names": json.dumps(["lever_joint"])}
-    if log_time is not None:
-        meta["log_time"] = log_time
+    if start_time is not None:
+        meta["start_time"] = start_time
+    if legacy_time is not None:
+        meta["log_time"] = legacy_time
     write_table(folder / name, lever_frame(robot, seed, tau_c, n), metadata=meta)
     return folder / name
 
@@ -66,8 +70,8 @@ def fleet_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("fleet")
     (d / "lever.urdf").write_text(URDF)
     for i, (tau_c, when) in enumerate(zip([0.2, 0.2, 0.5], TIMES)):
-        write_lever_log(d, f"log{i}.parquet", seed=i, tau_c=tau_c, log_time=when)
-    # bad input: a log without its torque column (and without a log_time: its mtime orders it)
+        write_lever_log(d, f"log{i}.parquet", seed=i, tau_c=tau_c, start_time=when)
+    # bad input: a log without its torque column (and without a start_time: its mtime orders it)
     write_table(d / "no_torque.parquet", pd.DataFrame({"t": np.arange(300) / 200.0, "q_0": np.zeros(300)}),
                 metadata={"urdf": "lever.urdf"})
     write_table(d / "log0_labels.parquet", pd.DataFrame({"t": [0.0], "disturbed": [0]}))  # not a log
@@ -101,7 +105,7 @@ def test_ray_table_matches_the_diagnosis_called_directly(ray_fleet, fleet_dir):
     for i in range(3):
         path = fleet_dir / f"log{i}.parquet"
         got = table[table["log"] == str(path)]
-        assert (got["log_time"] == pd.Timestamp(TIMES[i])).all()
+        assert (got["log_time"] == pd.Timestamp(TIMES[i])).all() and (got["log_time_source"] == "start_time").all()
         assert (got["robot"] == "lever").all() and got["error"].isna().all()
         expected = direct_rows(path)
         assert expected, "the planted friction must be found"
@@ -119,7 +123,8 @@ def test_bad_log_is_a_row_with_its_message(ray_fleet, fleet_dir):
     assert len(bad) == 1 and bad["effect"].isna().all()
     msg = bad["error"].iloc[0]
     assert "no_torque.parquet" in msg and "tau_0" in msg
-    # no log_time in its metadata: its time is the file's mtime
+    # no start_time in its metadata: its time is the file's mtime, and the table says so
+    assert bad["log_time_source"].iloc[0] == "mtime"
     assert bad["log_time"].iloc[0] == pd.Timestamp(os.stat(fleet_dir / "no_torque.parquet").st_mtime, unit="s", tz="UTC")
 
 
@@ -134,7 +139,7 @@ def test_drift_flag_end_to_end(ray_fleet, fleet_dir):
 def planted(rows):
     """A fleet table from (log index, effect, param, value, half-width) tuples; log i at day i."""
     recs = [{"log": f"L{i}", "robot": "r1", "log_time": pd.Timestamp("2026-03-01", tz="UTC") + pd.Timedelta(days=i),
-             "log_time_source": "metadata", "effect": e, "joint": "j1", "param": p, "value": v, "lo": v - h,
+             "log_time_source": "start_time", "effect": e, "joint": "j1", "param": p, "value": v, "lo": v - h,
              "hi": v + h, "error": None} for i, e, p, v, h in rows]
     return pd.DataFrame(recs).sample(frac=1.0, random_state=0)  # order must not matter
 
@@ -205,7 +210,8 @@ def test_tasks_run_single_threaded(local_ray):
 
 def test_command_writes_table_trends_and_errors(local_ray, tmp_path):
     (tmp_path / "lever.urdf").write_text(URDF)
-    good = write_lever_log(tmp_path, "good.parquet", seed=7, tau_c=0.3, log_time="2026-02-01T00:00:00", n=800)
+    # the key fleets read before contract 1.2 ('log_time', here without zone) is still read
+    good = write_lever_log(tmp_path, "good.parquet", seed=7, tau_c=0.3, legacy_time="2026-02-01T00:00:00", n=800)
     bad = tmp_path / "missing.parquet"
     out = tmp_path / "out"
     res = runner.invoke(app, ["fleet", str(good), str(bad), "--out", str(out), "--workers", "1"])
@@ -216,12 +222,14 @@ def test_command_writes_table_trends_and_errors(local_ray, tmp_path):
     assert "drift" in table.columns and "error" in table.columns
     ok = table[table["log"] == str(good)]
     assert ok["log_time"].iloc[0] == pd.Timestamp("2026-02-01T00:00:00", tz="UTC")  # no zone: UTC
+    assert ok["log_time_source"].iloc[0] == "log_time"
     assert "coulomb_friction" in set(ok["effect"])
     assert "does not exist" in table.loc[table["log"] == str(bad), "error"].iloc[0]
     assert json.loads((out / "logs" / "good" / "findings.json").read_text())["findings"]
     assert (out / "logs" / "missing" / "error.txt").is_file()
     assert any(p.suffix == ".png" for p in (out / "trends").iterdir())
-    assert json.loads((out / "drift.json").read_text())["baseline_size"] == 5
+    drift = json.loads((out / "drift.json").read_text())
+    assert drift["baseline_size"] == 5 and {s["status"] for s in drift["series"]} == {"no baseline"}
     again = runner.invoke(app, ["fleet", str(good), "--out", str(out)])
     assert again.exit_code == 2 and "not empty" in again.output
 

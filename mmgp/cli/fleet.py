@@ -33,6 +33,13 @@ def _report(fleet, out: Path) -> str:
                          f"{len(d['flagged_logs'])} log(s) flagged")
         elif d["status"] == "appeared":
             lines.append(f"NEW   {d['robot']} {d['effect']} {d['joint'] or ''} {d['param']}: first in {d['first_log']}")
+    drift = fleet.drift_
+    if drift["robots_without_baseline"]:
+        lines.append(f"NO BASELINE for {', '.join(map(str, drift['robots_without_baseline']))}: fewer than "
+                     f"{drift['baseline_size']} log(s), no series judged (--baseline sets the number)")
+    by_mtime = sum(log["log_time_source"] == "mtime" for log in s["logs"])
+    if by_mtime:
+        lines.append(f"{by_mtime} log(s) without start_time in their metadata: placed in time by file mtime")
     lines.append(f"Wrote {out}/report.html, fleet.parquet, drift.json, fleet.json, trends/, logs/.")
     return "\n".join(lines)
 

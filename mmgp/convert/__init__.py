@@ -11,8 +11,10 @@ eight shared real-robot datasets (:mod:`.datasets`), and contract logs themselve
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
+from ..data.times import wall_clock_iso
 from .base import ConvertedLog, check_log, order_for_robot, order_in_time, select_joints
 from .mapping import load_map
 from .registry import READERS, Reader, pick_reader
@@ -21,11 +23,24 @@ from .writer import write_logs
 __all__ = ["ConvertedLog", "READERS", "Reader", "convert", "load_map", "pick_reader", "read_input", "write_logs"]
 
 
+def _absolute_start(log: ConvertedLog) -> ConvertedLog:
+    """A ``t`` column in Unix seconds (a CSV's absolute time column: its first sample after 2000)
+    gives the log's ``start_time`` when its reader found none; ``t`` itself is kept."""
+    if log.start_time is not None or not log.t.size:
+        return log
+    start = wall_clock_iso(float(log.t[0]))
+    if start is None:
+        return log
+    return replace(log, metadata=dict(log.metadata, start_time=start)).noted(
+        f"t is Unix time: start_time = t[0] = {start}")
+
+
 def _finish(log: ConvertedLog, options: dict, path: Path) -> ConvertedLog:
     """The conventions shared by every reader, in order: joints, time, robot order, checks."""
     if options.get("joints") and log.joint_names != list(options["joints"]):
         log = select_joints(log, options["joints"], path)
     log = order_in_time(log, path)
+    log = _absolute_start(log)
     if options.get("robot"):
         log = order_for_robot(log, options["robot"], path)
     check_log(log, path)

@@ -29,7 +29,8 @@ class ConvertedLog(RobotLog):
 
     Arrays as in :class:`RobotLog` (``t`` (T,) s; ``q``/``dq``/``ddq``/``tau`` (T, n) rad,
     rad/s, rad/s^2, N*m; m, m/s, N for prismatic joints), ``dq``/``ddq`` None when the source
-    lacks them (mmgp estimates them); ``metadata`` holds ``robot`` and ``joint_names``; ``path``
+    lacks them (mmgp estimates them); ``metadata`` holds ``robot``, ``joint_names`` and, where the
+    recording has a wall clock, ``start_time`` (UTC ISO 8601 of the first sample); ``path``
     is the input read. ``name`` names the part (file name in a folder output); ``urdf`` is a URDF
     file to copy next to the log (named in its metadata); ``source`` says where the numbers came
     from and ``notes`` every convention applied on the way (both stored in the Parquet metadata).
@@ -43,11 +44,13 @@ class ConvertedLog(RobotLog):
     @classmethod
     def of(cls, name: str, t, q, tau, *, dq=None, ddq=None, joint_names: Sequence[str] | None = None,
            robot: str | None = None, urdf: Path | None = None, source: str = "",
-           notes: Sequence[str] = (), file: str | Path = "") -> "ConvertedLog":
+           notes: Sequence[str] = (), file: str | Path = "", start_time: str | None = None) -> "ConvertedLog":
         """A log from arrays (converted to float64) and what is known about them."""
         meta = {} if robot is None else {"robot": robot}
         if joint_names is not None:
             meta["joint_names"] = list(joint_names)
+        if start_time is not None:
+            meta["start_time"] = start_time
         as_float = lambda a: None if a is None else np.asarray(a, dtype=np.float64)  # noqa: E731
         return cls(path=str(file), t=as_float(t), q=as_float(q), tau=as_float(tau), dq=as_float(dq),
                    ddq=as_float(ddq), metadata=meta, name=name, urdf=urdf, source=source, notes=tuple(notes))
@@ -55,6 +58,10 @@ class ConvertedLog(RobotLog):
     @property
     def robot(self) -> str | None:
         return self.metadata.get("robot")
+
+    @property
+    def start_time(self) -> str | None:
+        return self.metadata.get("start_time")
 
     def noted(self, *notes: str) -> "ConvertedLog":
         return replace(self, notes=self.notes + notes)

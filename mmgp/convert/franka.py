@@ -28,8 +28,9 @@ FRANKA_FIELDS = ("q", "dq", "tau_J", "tau_J_d")
 
 
 def franka_log(name: str, t: np.ndarray, fields: dict[str, np.ndarray], options: dict[str, Any],
-               source: str, notes: list[str], file: str | Path) -> ConvertedLog:
-    """The log of FrankaState samples: ``fields`` maps field name -> (T, 7) array."""
+               source: str, notes: list[str], file: str | Path, start_time: str | None = None) -> ConvertedLog:
+    """The log of FrankaState samples: ``fields`` maps field name -> (T, 7) array; ``start_time``
+    the wall-clock time of ``t`` = 0 where the stamps have one."""
     src = choice(options, "tau_source", FRANKA_TAU, "tau_J")
     for field in ("q", src):
         if field not in fields:
@@ -43,7 +44,8 @@ def franka_log(name: str, t: np.ndarray, fields: dict[str, np.ndarray], options:
                      "joint torque")
     names = options.get("joint_names") or FRANKA_JOINTS
     return ConvertedLog.of(name=name, t=np.asarray(t, dtype=np.float64), q=fields["q"], tau=fields[src],
-                        dq=fields.get("dq"), joint_names=list(names), source=source, notes=notes)
+                        dq=fields.get("dq"), joint_names=list(names), source=source, notes=notes,
+                        start_time=start_time)
 
 
 def franka_source(path: Path, where: str) -> str:

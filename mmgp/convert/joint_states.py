@@ -14,6 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..data.times import wall_clock_iso
 from ..errors import InputError
 from .base import ConvertedLog
 
@@ -75,8 +76,10 @@ def _stack(messages, rows: list[int], field: str, idx: list[np.ndarray]) -> np.n
 
 
 def assemble(messages: Sequence[JointStateMessage], options: dict[str, Any], robot: str | None,
-             file: str | Path, name: str, source: str) -> ConvertedLog:
-    """One log from JointState messages; ``t`` relative to the first kept stamp."""
+             file: str | Path, name: str, source: str, origin_ns: int | None = 0) -> ConvertedLog:
+    """One log from JointState messages; ``t`` relative to the first kept stamp. ``origin_ns``:
+    the Unix time in ns of stamp 0 (0 for a bag's absolute stamps; None when the stamps are no
+    wall clock); ``start_time`` is the first kept stamp's time where it is a wall clock."""
     if not messages:
         raise InputError(f"{source}: no messages", file=file)
     joints = target_joints(messages, options, robot, file)
@@ -107,5 +110,6 @@ def assemble(messages: Sequence[JointStateMessage], options: dict[str, Any], rob
         notes.append(f"{len(messages) - len(rows)} messages of other joint sets skipped")
     if dq is None:
         notes.append("velocity missing in some messages: dq left out (mmgp estimates it)")
+    start = None if origin_ns is None else wall_clock_iso(ns=origin_ns + int(stamps.min()))
     return ConvertedLog.of(name=name, t=(stamps - stamps.min()) * 1e-9, q=q, tau=tau, dq=dq,
-                        joint_names=joints, source=source, notes=notes)
+                        joint_names=joints, source=source, notes=notes, start_time=start)

@@ -37,7 +37,7 @@ def _read_contract(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
     log = read_log(path, min_samples=1)
     return [ConvertedLog.of(name=path.stem, t=log.t, q=log.q, tau=log.tau, dq=log.dq, ddq=log.ddq,
                          joint_names=log.joint_names, robot=log.metadata.get("robot"), file=path,
-                         source=f"contract log {path.name}", notes=[])]
+                         source=f"contract log {path.name}", notes=[], start_time=log.metadata.get("start_time"))]
 
 
 # In this order: a map with columns means a plain CSV whatever else the file looks like.

@@ -6,7 +6,9 @@ Two message types: ``franka_msgs/FrankaState`` (see :mod:`.franka` for the torqu
 
 Time: the header stamp (integer ns in ``rostopic`` output) unless the map says
 ``stamp: receive``, then the recording time (``%time``, ns, or ``__time``, s); a FrankaState
-export without either uses its ``time`` field (robot clock, s). ``t`` starts at 0.
+export without either uses its ``time`` field (robot clock, s). ``t`` starts at 0. A header
+stamp or recording time (Unix time) of the first sample becomes the log's ``start_time`` (UTC);
+the robot clock gives none.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from ..data.times import wall_clock_iso
 from ..errors import InputError
 from .base import ConvertedLog
 from .franka import FRANKA_FIELDS, franka_log, franka_source
@@ -25,10 +28,12 @@ from .joint_states import JointStateMessage, assemble
 from .mapping import choice
 from .tables import header_names, indexed_columns, numeric_block, read_table
 
-# (regex on the column name, seconds per unit, what it is); searched in this order
+# (regex on the column name, seconds per unit, what it is); searched in this order. Stamps and
+# recording times are Unix time (a wall clock, when in range); the robot's clock is not.
 STAMP_COLUMNS = [(r"(?:^|[./])header[./]stamp$", 1e-9, "header stamp")]
 RECEIVE_COLUMNS = [(r"^%time$", 1e-9, "recording time"), (r"^__time$", 1.0, "recording time")]
 ROBOT_TIME_COLUMNS = [(r"(?:^|[./])time$", 1.0, "robot time")]
+WALL_CLOCKS = ("header stamp", "recording time")
 
 
 def field_pattern(field: str) -> str:
@@ -51,8 +56,10 @@ def recognises_joint_states(path: Path, options: dict[str, Any]) -> bool:
     return all(_has(names, f) for f in ("name", "position", "effort"))
 
 
-def _time(df: pd.DataFrame, path: Path, options: dict[str, Any], robot_time: bool) -> tuple[np.ndarray, str]:
-    """(t in s from 0, note) from the first time column the rule in the module doc finds."""
+def _time(df: pd.DataFrame, path: Path, options: dict[str, Any],
+          robot_time: bool) -> tuple[np.ndarray, str, int | None]:
+    """(t in s from 0, note, Unix ns of t = 0 or None for the robot's clock) from the first time
+    column the rule in the module doc finds."""
     stamp = choice(options, "stamp", ("header", "receive"), "header")
     order = (RECEIVE_COLUMNS + STAMP_COLUMNS) if stamp == "receive" else (STAMP_COLUMNS + RECEIVE_COLUMNS)
     order = order + (ROBOT_TIME_COLUMNS if robot_time else [])
@@ -67,7 +74,8 @@ def _time(df: pd.DataFrame, path: Path, options: dict[str, Any], robot_time: boo
         # integer ns stamps are subtracted as integers: as float64 s they would lose the ns digits
         v = raw.to_numpy()
         origin = v.min()
-        return (v - origin).astype(np.float64) * unit, f"t = {what} ('{col}') - {origin}"
+        origin_ns = (int(origin) if unit == 1e-9 else int(round(float(origin) * 1e9))) if what in WALL_CLOCKS else None
+        return (v - origin).astype(np.float64) * unit, f"t = {what} ('{col}') - {origin}", origin_ns
     raise InputError("no time column: expected field.header.stamp, %time or __time"
                      + (" or time" if robot_time else ""), file=path)
 
@@ -81,8 +89,9 @@ def read_franka(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
         cols = indexed_columns(names, field_pattern(field), path, field)
         if cols:
             fields[field] = numeric_block(df, cols, path)
-    t, note = _time(df, path, options, robot_time=True)
-    return [franka_log(path.stem, t, fields, options, franka_source(path, "CSV export"), [note], path)]
+    t, note, origin_ns = _time(df, path, options, robot_time=True)
+    start = None if origin_ns is None else wall_clock_iso(ns=origin_ns)
+    return [franka_log(path.stem, t, fields, options, franka_source(path, "CSV export"), [note], path, start)]
 
 
 def read_joint_states(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
@@ -90,7 +99,7 @@ def read_joint_states(path: Path, options: dict[str, Any]) -> list[ConvertedLog]
     df = read_table(path, options)
     names = [str(c) for c in df.columns]
     cols = {f: indexed_columns(names, field_pattern(f), path, f) for f in ("name", "position", "velocity", "effort")}
-    t, note = _time(df, path, options, robot_time=False)
+    t, note, origin_ns = _time(df, path, options, robot_time=False)
     stamps = np.round(t * 1e9).astype(np.int64)
     joint_names = df[cols["name"]].astype(str).to_numpy()
     blocks = {f: numeric_block(df, cols[f], path) if cols[f] else np.zeros((len(df), 0))
@@ -98,5 +107,5 @@ def read_joint_states(path: Path, options: dict[str, Any]) -> list[ConvertedLog]
     messages = [JointStateMessage(int(stamps[k]), tuple(joint_names[k]), blocks["position"][k],
                                   blocks["velocity"][k], blocks["effort"][k]) for k in range(len(df))]
     log = assemble(messages, options, options.get("robot"), path, path.stem,
-                   f"sensor_msgs/JointState CSV export {path.name}")
+                   f"sensor_msgs/JointState CSV export {path.name}", origin_ns=origin_ns)
     return [replace(log, notes=(note,) + log.notes[1:])]

@@ -8,6 +8,8 @@ when the bag has exactly one such topic, else ``--topic`` (or map key ``topic``)
 Time: each message's header stamp; map key ``stamp: receive`` takes the time the recorder
 received it instead (for publishers that leave the stamp empty or stamp badly). When every
 header stamp of the topic is zero (never filled in) the receive time is used, and noted.
+The first sample's stamp, when it is a wall clock (Unix time between 2000 and 2100; not a
+simulator's time from 0), becomes the log's ``start_time`` (UTC).
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from ..data.times import wall_clock_iso
 from ..errors import InputError
 from .base import ConvertedLog
 from .franka import FRANKA_FIELDS, franka_log, franka_source
@@ -112,7 +115,8 @@ def _franka_log(items, options, path: Path, topic: str) -> ConvertedLog:
     fields = {f: np.stack([np.asarray(getattr(m, f), dtype=np.float64) for _, _, m in items])
               for f in FRANKA_FIELDS if hasattr(items[0][2], f)}
     return franka_log(path.stem, (stamps - stamps.min()) * 1e-9, fields, options,
-                      franka_source(path, f"topic {topic}"), [f"t = stamp - {int(stamps.min())} ns"], path)
+                      franka_source(path, f"topic {topic}"), [f"t = stamp - {int(stamps.min())} ns"], path,
+                      start_time=wall_clock_iso(ns=int(stamps.min())))
 
 
 def read(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:

@@ -23,7 +23,7 @@ def log_frame(log: ConvertedLog) -> pd.DataFrame:
 
 
 def log_metadata(log: ConvertedLog, urdf_name: str | None) -> dict[str, str]:
-    """Parquet metadata: the contract's robot / urdf / joint_names, plus source and notes."""
+    """Parquet metadata: the contract's robot / urdf / joint_names / start_time, plus source and notes."""
     meta = {"source": log.source, "notes": "; ".join(log.notes)}
     if log.robot is not None:
         meta["robot"] = log.robot
@@ -31,6 +31,8 @@ def log_metadata(log: ConvertedLog, urdf_name: str | None) -> dict[str, str]:
         meta["urdf"] = urdf_name
     if log.joint_names is not None:
         meta["joint_names"] = json.dumps(list(log.joint_names))
+    if log.start_time is not None:
+        meta["start_time"] = log.start_time
     return meta
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import InputError, describe, one_line
+from .times import START_TIME_KEY, parse_start_time
 
 # exactly the contract's names: ASCII digits without leading zeros ('q_00', 'q_\u0661' are not q_0, q_1)
 _COL = re.compile(r"(q|dq|ddq|tau)_(0|[1-9][0-9]*)")
@@ -54,12 +55,15 @@ def _parquet_schema(path: Path):
 
 
 def _parquet_metadata(schema, path: Path) -> dict:
-    """The contract's file metadata (robot, urdf, joint_names) of a Parquet schema."""
+    """The contract's file metadata (robot, urdf, joint_names, start_time) of a Parquet schema;
+    ``start_time`` is checked (:func:`mmgp.data.times.parse_start_time`) and kept as written."""
     meta = {}
     for k, v in (schema.metadata or {}).items():
         key = k.decode(errors="replace")
-        if key in ("robot", "urdf", "joint_names"):
+        if key in ("robot", "urdf", "joint_names", START_TIME_KEY):
             meta[key] = v.decode(errors="replace")
+    if START_TIME_KEY in meta:
+        parse_start_time(meta[START_TIME_KEY], path)
     if "joint_names" in meta:
         try:
             names = json.loads(meta["joint_names"])

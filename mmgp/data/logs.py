@@ -24,6 +24,7 @@ from .headers import (_BLANK_LINES, _LINE_BREAK, _check_file, _csv_bytes, _csv_h
                       _log_columns, _missing_t, _parquet_metadata, _parquet_schema, _refuse_duplicates,
                       read_table_header)
 from .outputs import write_table
+from .times import START_TIME_KEY, format_start_time, parse_start_time
 
 MIN_SAMPLES = 10
 
@@ -334,8 +335,9 @@ def read_labels(path: str | os.PathLike, *, t: np.ndarray | None = None, atol: f
 def write_log(path: str | os.PathLike, t: np.ndarray, q: np.ndarray, tau: np.ndarray, *,
               dq: np.ndarray | None = None, ddq: np.ndarray | None = None,
               robot: str | None = None, urdf: str | None = None,
-              joint_names: Sequence[str] | None = None) -> Path:
-    """Write a contract log (Parquet with file metadata, or CSV without) atomically."""
+              joint_names: Sequence[str] | None = None, start_time: str | None = None) -> Path:
+    """Write a contract log (Parquet with file metadata, or CSV without) atomically.
+    ``start_time``: the wall-clock time of the first sample (ISO 8601 with its offset)."""
     path = Path(path)
     cols = {"t": np.asarray(t, dtype=np.float64)}
     n = np.asarray(q).shape[1]
@@ -353,6 +355,8 @@ def write_log(path: str | os.PathLike, t: np.ndarray, q: np.ndarray, tau: np.nda
         meta["urdf"] = str(urdf)
     if joint_names is not None:
         meta["joint_names"] = json.dumps(list(joint_names))
+    if start_time is not None:
+        meta[START_TIME_KEY] = format_start_time(parse_start_time(start_time))
     write_table(path, df, metadata=meta)
     return path
 

@@ -17,6 +17,7 @@ from ..errors import InputError
 from .drift import flag_drift
 from .engine import available_cores, run_ray, run_serial
 from .table import fleet_table
+from .work import log_time
 
 LOG_SUFFIXES = (".parquet", ".pq", ".csv")
 ENGINES = ("ray", "serial")
@@ -94,7 +95,11 @@ class Fleet(BaseEstimator):
             raise InputError(f"--baseline must be at least 1 log, got {self.baseline}")
 
     def _job(self, path: Path) -> dict:
-        return {"path": str(path.resolve()), "name": str(path), "robot": self.robot,
+        # the time is read here, before any task runs: a malformed start_time is bad input of the
+        # whole run (one error, exit 2), not a failed row found after minutes of diagnosis
+        seconds, source = log_time(path)
+        return {"path": str(path.resolve()), "name": str(path), "log_time": seconds, "log_time_source": source,
+                "robot": self.robot,
                 "urdf": None if self.urdf is None else str(Path(self.urdf).resolve()), "train": bool(self.train),
                 "diagnosis_settings": self.diagnosis_settings, "train_settings": self.train_settings}
 
@@ -147,7 +152,7 @@ class Fleet(BaseEstimator):
         summary = self.summary()
         summary["trends"] = plot_trends(self.table_, self.drift_, out / "trends")
         atomic_write_bytes(out / "fleet.json", json.dumps(jsonable(summary), indent=2).encode())
-        write_fleet_report(out, summary, self.drift_)
+        write_fleet_report(out, summary, self.drift_, {o["log"]: o["findings"] for o in self.outcomes_})
         for o, s in zip(self.outcomes_, summary["logs"]):
             _write_log_outputs(out / s["folder"], o)
         return out

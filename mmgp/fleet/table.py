@@ -1,8 +1,9 @@
 """The fleet table: one row per log, effect, joint (or link) and parameter component.
 
-Columns: ``log`` (path), ``robot``, ``log_time`` (UTC), ``log_time_source`` (``metadata`` or
-``mtime``), ``effect``, ``joint``, ``param``, ``value``, ``lo``, ``hi``, ``error``; the drift
-stage adds ``drift``. Rules:
+Columns: ``log`` (path), ``robot``, ``log_time`` (UTC), ``log_time_source`` (``start_time``,
+the legacy ``log_time``, or ``mtime``: see :func:`mmgp.fleet.work.log_time`), ``effect``,
+``joint``, ``param``, ``value``, ``lo``, ``hi``, ``unit`` (:func:`param_unit`), ``error``; the
+drift stage adds ``drift``. Rules:
 
 * ``joint`` is the finding's joint, or its ``link`` for link effects (``payload``,
   ``inertial_parameters``), or empty (None) for whole-log effects (``external_disturbance``,
@@ -22,6 +23,8 @@ stage adds ``drift``. Rules:
 from __future__ import annotations
 
 import math
+import re
+from functools import lru_cache
 from numbers import Real
 
 import numpy as np
@@ -32,9 +35,44 @@ EVENT_PARAMS = ("spans_s", "switch_times_s")
 #: params that name where the effect is, not how large it is
 PLACE_PARAMS = ("link", "joint")
 COLUMNS = ["log", "robot", "log_time", "log_time_source", "effect", "joint", "param", "value", "lo", "hi",
-           "error"]
+           "unit", "error"]
+#: units of parameters no effect class declares (whole-log effects, training rows, per-body deltas);
+#: "" is dimensionless. The training's noise and signal levels are of the torque residual.
+OTHER_UNITS = {"fraction": "", "n_samples": "samples", "n_modes": "", "disturbed_fraction": "",
+               "noise_std": "N*m", "signal_std": "N*m", "mass": "kg", "com": "m", "inertia": "kg*m^2"}
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 #: half-width of the interval in standard deviations
 INTERVAL_SD = 2.0
+
+
+@lru_cache(maxsize=None)
+def _declared_units() -> tuple[dict, dict]:
+    """(effect -> its parameters' units, parameter -> unit where every effect agrees), from the
+    effect classes (the contract's effect table, section 3)."""
+    from ..physics.effects import EFFECT_CLASSES
+
+    by_effect = {name: dict(cls.units) for name, cls in EFFECT_CLASSES.items()}
+    seen: dict[str, set] = {}
+    for units in by_effect.values():
+        for key, unit in units.items():
+            seen.setdefault(key, set()).add(unit)
+    return by_effect, {k: next(iter(v)) for k, v in seen.items() if len(v) == 1}
+
+
+def param_unit(effect: str | None, param: str | None) -> str | None:
+    """The unit of a table row's ``param`` (``tau_c``, ``com[1]``, ``per_mode[0].mass``,
+    ``delta.link3.inertia[2]``): its last name looked up in the effect's own units, then in the
+    units every effect agrees on, then :data:`OTHER_UNITS`; None when unknown (e.g. a mode
+    switch's ``offset``, which is rad on an encoder and N*m on a torque sensor)."""
+    names = _NAME.findall(param or "")
+    if not names:
+        return None
+    by_effect, agreed = _declared_units()
+    own = by_effect.get(effect or "", {})
+    for table in (own, agreed, OTHER_UNITS):
+        if names[-1] in table:
+            return table[names[-1]]
+    return None
 
 
 def _number(x) -> bool:
@@ -96,7 +134,7 @@ def outcome_rows(outcome: dict) -> list[dict]:
         rows += training_rows(outcome["training"]["report"])
     if not rows:
         rows = [{"effect": None, "joint": None, "param": None, "value": math.nan, "lo": math.nan, "hi": math.nan}]
-    return [dict(head, **r) for r in rows]
+    return [dict(head, unit=param_unit(r["effect"], r["param"]), **r) for r in rows]
 
 
 def fleet_table(outcomes: list[dict]) -> pd.DataFrame:

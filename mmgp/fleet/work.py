@@ -14,10 +14,12 @@ import traceback
 from datetime import datetime, timezone
 from pathlib import Path
 
+from ..data.times import EXAMPLE, START_TIME_KEY, parse_start_time
 from ..errors import InputError
 
-#: Parquet file-metadata key holding when a log was recorded (ISO 8601, or Unix seconds)
-LOG_TIME_KEY = "log_time"
+#: the metadata key fleets before contract 1.2 read (ISO 8601, a time without zone taken as UTC,
+#: or Unix seconds); still read after ``start_time`` so that logs written for them keep their times
+LEGACY_TIME_KEY = "log_time"
 
 #: thread-count variables of the numerical libraries a task uses (OpenMP, OpenBLAS, MKL, BLIS,
 #: Apple Accelerate, numexpr); Ray's workers get them at start, before numpy or torch load
@@ -42,7 +44,7 @@ def single_threaded():
         torch.set_num_threads(before)
 
 
-def _parse_log_time(raw: str, path: Path) -> float:
+def _parse_legacy_time(raw: str, path: Path) -> float:
     text = raw.strip()
     try:
         return float(text)
@@ -51,28 +53,39 @@ def _parse_log_time(raw: str, path: Path) -> float:
     try:
         stamp = datetime.fromisoformat(text.replace("Z", "+00:00"))
     except ValueError:
-        raise InputError(f"metadata '{LOG_TIME_KEY}' is {raw!r}: expected an ISO 8601 time "
-                         "(e.g. 2026-11-22T10:00:00Z) or Unix seconds", file=path) from None
+        raise InputError(f"metadata '{LEGACY_TIME_KEY}' is {raw!r}: expected an ISO 8601 time "
+                         f"(e.g. {EXAMPLE}) or Unix seconds; new logs name it '{START_TIME_KEY}'",
+                         file=path) from None
     if stamp.tzinfo is None:  # a time without zone is read as UTC, the same on every node
         stamp = stamp.replace(tzinfo=timezone.utc)
     return stamp.timestamp()
 
 
+def _parquet_keys(path: Path) -> dict[str, str]:
+    import pyarrow.parquet as pq
+
+    try:
+        meta = pq.read_schema(path).metadata or {}
+    except Exception:  # an unreadable file is reported by its task (read_log), not here
+        return {}
+    return {k.decode(errors="replace"): v.decode(errors="replace") for k, v in meta.items()}
+
+
 def log_time(path: str | os.PathLike) -> tuple[float, str]:
     """When a log was recorded, in Unix seconds, and where that came from.
 
-    Rule: the Parquet file-metadata key ``log_time`` when present (ISO 8601; a time without zone
-    is UTC; or a number of Unix seconds), otherwise the file's modification time (``mtime``; CSV
-    logs have no metadata). Returns ``(seconds, "metadata" | "mtime")``."""
+    Rule: the Parquet metadata ``start_time`` (CONTRACT 1.2: ISO 8601 with its offset), else the
+    legacy key ``log_time``, else the file's modification time (``mtime``: CSV logs have no
+    metadata; copying a file changes it). Returns ``(seconds, "start_time" | "log_time" |
+    "mtime")``, or ``(nan, "missing")`` for a file that is not there. A malformed time is an
+    InputError naming the file and the key: a wrong time would misplace the log in every trend."""
     path = Path(path)
-    if path.suffix.lower() in (".parquet", ".pq"):
-        import pyarrow.parquet as pq
-
-        with contextlib.suppress(Exception):  # an unreadable file is reported by read_log
-            meta = pq.read_schema(path).metadata or {}
-            raw = meta.get(LOG_TIME_KEY.encode())
-            if raw is not None:
-                return _parse_log_time(raw.decode(errors="replace"), path), "metadata"
+    if path.suffix.lower() in (".parquet", ".pq") and path.is_file():
+        meta = _parquet_keys(path)
+        if START_TIME_KEY in meta:
+            return parse_start_time(meta[START_TIME_KEY], path).timestamp(), START_TIME_KEY
+        if LEGACY_TIME_KEY in meta:
+            return _parse_legacy_time(meta[LEGACY_TIME_KEY], path), LEGACY_TIME_KEY
     return _mtime(path)
 
 
@@ -123,7 +136,8 @@ def _process(path: Path, job: dict, out: dict) -> None:
     from ..data.logs import read_log
     from ..physics.robot import load_robot
 
-    out["log_time"], out["log_time_source"] = log_time(path)
+    if out["log_time_source"] is None:  # a job from the Fleet carries the time its driver read
+        out["log_time"], out["log_time_source"] = log_time(path)
     robot = load_robot(robot=job.get("robot"), urdf=job.get("urdf"), log_path=path)
     if robot is None:
         raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
@@ -137,10 +151,10 @@ def _process(path: Path, job: dict, out: dict) -> None:
 
 def blank_outcome(job: dict, error: str | None = None) -> dict:
     """The outcome of a job before it runs (or of one whose task never returned: ``error``)."""
-    out = {"log": str(job.get("name", job["path"])), "robot": job.get("robot"), "log_time": float("nan"),
-           "log_time_source": None, "findings": None, "diagnosis": None, "training": None, "error": error,
-           "seconds": 0.0}
-    if error is not None:
+    out = {"log": str(job.get("name", job["path"])), "robot": job.get("robot"),
+           "log_time": job.get("log_time", float("nan")), "log_time_source": job.get("log_time_source"),
+           "findings": None, "diagnosis": None, "training": None, "error": error, "seconds": 0.0}
+    if error is not None and out["log_time_source"] is None:
         out["log_time"], out["log_time_source"] = _mtime(Path(job["path"]))
     return out
 
