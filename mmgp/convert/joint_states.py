@@ -108,4 +108,4 @@ def assemble(messages: Sequence[JointStateMessage], options: dict[str, Any], rob
     if dq is None:
         notes.append("velocity missing in some messages: dq left out (mmgp estimates it)")
     return ConvertedLog.of(name=name, t=(stamps - stamps.min()) * 1e-9, q=q, tau=tau, dq=dq,
-                        joint_names=joints, source=source, notes=notes)
+                        joint_names=joints, source=source, notes=notes).with_time_origin(stamp_ns=int(stamps.min()))
