@@ -10,7 +10,7 @@ import typer
 
 from .. import __version__
 # imported for their side effect, in the order `mmgp --help` lists the commands
-from . import train, compensator, diagnose, convert, fleet, settings  # noqa: F401,I001
+from . import train, compensator, diagnose, convert, annotate, fleet, settings  # noqa: F401,I001
 from .common import app
 
 

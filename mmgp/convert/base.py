@@ -34,6 +34,9 @@ class ConvertedLog(RobotLog):
     is the input read. ``name`` names the part (file name in a folder output); ``urdf`` is a URDF
     file to copy next to the log (named in its metadata); ``source`` says where the numbers came
     from and ``notes`` every convention applied on the way (both stored in the Parquet metadata).
+    ``metadata["time_origin"]`` (inputs with absolute stamps: bags, ROS CSV exports) places ``t``
+    on the recording's clock: ``{"stamp_ns": stamp of t = 0 in integer ns}``, plus for bags the
+    ``clock`` ("header" or "receive"), ``topic`` and ``bag`` (file name); ``mmgp annotate`` uses it.
     """
 
     name: str = ""
@@ -62,6 +65,11 @@ class ConvertedLog(RobotLog):
     @property
     def start_time(self) -> str | None:
         return self.metadata.get("start_time")
+
+    def with_time_origin(self, **fields) -> "ConvertedLog":
+        """The same log with ``fields`` added to its ``time_origin`` metadata (see the class doc)."""
+        origin = dict(self.metadata.get("time_origin") or {}, **fields)
+        return replace(self, metadata=dict(self.metadata, time_origin=origin))
 
     def noted(self, *notes: str) -> "ConvertedLog":
         return replace(self, notes=self.notes + notes)

@@ -112,4 +112,5 @@ def assemble(messages: Sequence[JointStateMessage], options: dict[str, Any], rob
         notes.append("velocity missing in some messages: dq left out (mmgp estimates it)")
     start = None if origin_ns is None else wall_clock_iso(ns=origin_ns + int(stamps.min()))
     return ConvertedLog.of(name=name, t=(stamps - stamps.min()) * 1e-9, q=q, tau=tau, dq=dq,
-                        joint_names=joints, source=source, notes=notes, start_time=start)
+                        joint_names=joints, source=source, notes=notes, start_time=start).with_time_origin(
+        stamp_ns=(origin_ns or 0) + int(stamps.min()))

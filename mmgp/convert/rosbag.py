@@ -7,7 +7,8 @@ when the bag has exactly one such topic, else ``--topic`` (or map key ``topic``)
 
 Time: each message's header stamp; map key ``stamp: receive`` takes the time the recorder
 received it instead (for publishers that leave the stamp empty or stamp badly). When every
-header stamp of the topic is zero (never filled in) the receive time is used, and noted.
+header stamp of the topic is zero (never filled in) the receive time is used, and noted. ``t``
+starts at 0; the metadata ``time_origin`` records the stamp of t = 0, the clock and the topic.
 The first sample's stamp, when it is a wall clock (Unix time between 2000 and 2100; not a
 simulator's time from 0), becomes the log's ``start_time`` (UTC).
 """
@@ -116,7 +117,7 @@ def _franka_log(items, options, path: Path, topic: str) -> ConvertedLog:
               for f in FRANKA_FIELDS if hasattr(items[0][2], f)}
     return franka_log(path.stem, (stamps - stamps.min()) * 1e-9, fields, options,
                       franka_source(path, f"topic {topic}"), [f"t = stamp - {int(stamps.min())} ns"], path,
-                      start_time=wall_clock_iso(ns=int(stamps.min())))
+                      start_time=wall_clock_iso(ns=int(stamps.min()))).with_time_origin(stamp_ns=int(stamps.min()))
 
 
 def read(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
@@ -134,4 +135,6 @@ def read(path: Path, options: dict[str, Any]) -> list[ConvertedLog]:
     log = (_joint_state_log if msgtype == JOINT_STATE else _franka_log)(items, options, path, topic)
     if use_receive or fell_back:
         log = log.noted("time = recording (receive) time" + (": every header stamp was zero" if fell_back else ""))
-    return [log]
+    # where t = 0 lies on the bag's clock, for mmgp annotate (docs/annotate.md)
+    return [log.with_time_origin(clock="receive" if use_receive or fell_back else "header", topic=topic,
+                                 bag=path.name)]

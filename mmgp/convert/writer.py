@@ -23,7 +23,8 @@ def log_frame(log: ConvertedLog) -> pd.DataFrame:
 
 
 def log_metadata(log: ConvertedLog, urdf_name: str | None) -> dict[str, str]:
-    """Parquet metadata: the contract's robot / urdf / joint_names / start_time, plus source and notes."""
+    """Parquet metadata: the contract's robot / urdf / joint_names / start_time, plus source, notes and
+    (absolute stamps) time_origin."""
     meta = {"source": log.source, "notes": "; ".join(log.notes)}
     if log.robot is not None:
         meta["robot"] = log.robot
@@ -33,6 +34,8 @@ def log_metadata(log: ConvertedLog, urdf_name: str | None) -> dict[str, str]:
         meta["joint_names"] = json.dumps(list(log.joint_names))
     if log.start_time is not None:
         meta["start_time"] = log.start_time
+    if log.metadata.get("time_origin"):
+        meta["time_origin"] = json.dumps(log.metadata["time_origin"])
     return meta
 
 
