@@ -23,7 +23,7 @@ def test_rigid_body_torque_and_regressor_are_even_in_velocity():
     assert np.abs(robot.rnea(q, dq, ddq) - robot.rnea(q, 0 * dq, ddq)).max() > 0.1
 
 
-def _lever(friction_sign: float, T: int = 400, seed: int = 0):
+def _lever(friction_sign: float, T: int = 400, seed: int = 0, level: float = 0.4, noise: float = 0.01):
     """A 1-DOF lever's inputs [q, dq, ddq, tanh(dq / 0.05)] and torque 2 cos q + s 0.4 tanh(dq / 0.05)."""
     rng = np.random.default_rng(seed)
     t = np.linspace(0, 40, T)
@@ -32,7 +32,7 @@ def _lever(friction_sign: float, T: int = 400, seed: int = 0):
     ddq = -0.2 * np.sin(0.5 * t) - 0.507 * np.sin(1.3 * t)
     sign = np.tanh(dq / 0.05)
     X = np.column_stack([q, dq, ddq, sign])
-    y = 2.0 * np.cos(q) + friction_sign * 0.4 * sign + 0.01 * rng.standard_normal(T)
+    y = 2.0 * np.cos(q) + friction_sign * level * sign + noise * rng.standard_normal(T)
     return X, y[:, None]
 
 
@@ -57,8 +57,8 @@ def test_odd_part_adds_the_basis_friction_columns():
     np.testing.assert_allclose(odd[:, 0], 0.3 * X[:, 3], atol=0.02)
 
 
-def _fitted(friction_sign: float):
-    X, Y = _lever(friction_sign)
+def _fitted(friction_sign: float, **lever):
+    X, Y = _lever(friction_sign, **lever)
     T = len(Y)
     return X, SimpleNamespace(gps_=[ExactGP(seed=0).fit(X, Y)], coef_=[None], labels_=np.zeros(T, int),
                               disturbed_=np.zeros(T, bool), support_X_=[X], support_Y_=[Y])
@@ -91,6 +91,23 @@ def test_energy_check_passes_dissipative_friction_and_catches_injected_energy():
     flips = injecting_samples(bad, X, None, REV)
     sliding = np.abs(X[:, 1]) > 0.1
     assert flips[sliding].mean() > 0.9 and not injecting_samples(good, X, None, REV).any()
+
+
+def test_injection_within_what_the_model_cannot_explain_is_not_called_physics():
+    """Friction of the wrong sign at 0.02 N*m under 0.1 N*m of noise: the GP learns it with a
+    latent spread far below 0.02 (400 samples), so against the latent spread alone most sliding
+    samples would 'inject'; against the predictive spread (noise included, ~0.1) none does. At
+    0.4 N*m (4x the noise) the check fires either way."""
+    from mmgp.models.dissipation import _odd_z, _sliding
+
+    X, faint = _fitted(-1.0, level=0.02, noise=0.1)
+    dq, sliding = _sliding(X, REV)
+    rows = np.flatnonzero(sliding[:, 0])
+    _, z_latent = _odd_z(faint, 0, rows, X, None, REV, dq, with_noise=False)
+    assert np.mean(z_latent[:, 0] < -2) > 0.3
+    assert energy_check(faint, X, None, REV)["physical"]
+    X, strong = _fitted(-1.0, level=0.4, noise=0.1)
+    assert not energy_check(strong, X, None, REV)["physical"]
 
 
 def test_a_first_fit_that_injects_energy_is_not_returned():
