@@ -22,7 +22,7 @@ from .gp.hyper import Hyper
 from .gp.linalg import resolve_device
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .models.features import build_features, load_logs, resolve_mean_basis, rest_band_on, state_features
+from .models.features import build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
 from .models.report import labels_frame, training_report
 
 MODEL_FORMAT = "mmgp-model"
@@ -67,7 +67,8 @@ class MultimodalGP(BaseEstimator):
     stay_prob : float in (0, 1) or None, default None
         Fixed p(mode_t = mode_{t-1}); None learns it (Beta prior, mean 0.95).
     rate_hz : float > 0 or None, default None
-        Downsample to about this rate after differentiating (None keeps the log's rate).
+        Downsample to about this rate after differentiating (None keeps the log's rate);
+        ``report_['thinning']`` records the samples read and kept.
     diff_window_s : float or None, default None
         Savitzky-Golay window for estimated dq / ddq in s; None chooses it per joint by
         leave-one-out cross-validation (between max(5 samples, 0.05 s) and 0.5 s).
@@ -334,7 +335,7 @@ class MultimodalGP(BaseEstimator):
         self._validate()
         sources = _sources(logs, t=t, q=q, tau=tau, dq=dq, ddq=ddq)
         robot = _resolve_robot(self.robot, sources[0])
-        logs_ = load_logs(sources, robot=robot, diff_window_s=self.diff_window_s, rate_hz=self.rate_hz)
+        logs_, thinning = thin_logs(load_logs(sources, robot=robot, diff_window_s=self.diff_window_s), self.rate_hz)
         t_load = time.perf_counter() - t0
         semi = self.semiparametric if robot is not None else "none"
         fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs_])) if self.friction_feature else None
@@ -368,7 +369,8 @@ class MultimodalGP(BaseEstimator):
             robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind,
             with_friction=fscale is not None, mode_selection=selection,
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
-        self.report_.update(windows_shortened_s=shortened, dissipation=dissipation, heldout=heldout_score(self))
+        self.report_.update(windows_shortened_s=shortened, thinning=thinning, dissipation=dissipation,
+                            heldout=heldout_score(self))
         self.report_["timings"].update(heldout_s=self.report_["heldout"]["seconds"], total_s=time.perf_counter() - t0)
         return self
 

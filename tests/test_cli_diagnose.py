@@ -137,3 +137,27 @@ def test_settings_come_from_the_config_section(case, tmp_path):
     res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(tmp_path / "x"), "--config", str(cfg)])
     assert res.exit_code == 2
     assert "no_such_setting" in res.output and "settings.yaml" in res.output
+
+
+def test_thinning_to_max_samples_is_said(case, tmp_path):
+    """A log longer than max_samples is thinned (after its ends are trimmed where derivatives
+    count as estimated), and the progress output says so (docs/training.md, Thinning and
+    subsampling); --quiet does not."""
+    import re
+
+    n_log = len(case["rec"].t)
+    cfg = tmp_path / "settings.yaml"
+    cfg.write_text(f"diagnose:\n  gp: false\n  plots: false\n  separate: scan\n  modes: false\n"
+                   f"  max_samples: {n_log // 2}\n")
+    res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(tmp_path / "o"), "--config", str(cfg)])
+    assert res.exit_code == 0, res.output
+    said = re.search(rf"^{n_log // 2:,} of ([\d,]+) samples used: max_samples {n_log // 2}$", res.output, re.M)
+    assert said, res.output
+    n_read = int(said.group(1).replace(",", ""))
+    assert n_log - 100 < n_read <= n_log       # at most the trimmed ends (a few filter lengths) less
+    info = json.loads((tmp_path / "o" / "findings.json").read_text())["info"]
+    assert (info["n_samples"], info["n_samples_in_log"]) == (n_log // 2, n_read)
+    line = said.group(0)
+    res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(tmp_path / "q"), "--config", str(cfg),
+                              "--quiet"])
+    assert res.exit_code == 0 and line not in res.output

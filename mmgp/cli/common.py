@@ -12,8 +12,9 @@ import typer
 
 from .._version import __version__
 from ..errors import InputError
+from .helptext import App, setting_option
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+app = App(add_completion=False, no_args_is_help=True,
                   help="Multimodal GP inverse dynamics from messy robot logs.")
 
 
@@ -50,6 +51,13 @@ def check_log_headers(logs) -> None:
 
 
 DEVICE_HELP = "torch device of the GPs: cpu (default), cuda, cuda:N or auto (cuda when there is one)."
+
+
+def device_option(section: str | None = None, help: str = DEVICE_HELP) -> Optional[str]:
+    """``--device``; with ``section``, a setting of it (help shows the shipped default)."""
+    if section is None:
+        return typer.Option(None, "--device", help=help)
+    return setting_option(section, "device", "--device", help=help.replace("cpu (default)", "cpu"))
 
 
 def _check_device(device: Optional[str]) -> None:
@@ -142,8 +150,17 @@ def urdf_option() -> Optional[Path]:
     return typer.Option(None, "--urdf", help="URDF file of the robot (instead of --robot).")
 
 
-def seed_option(default: Optional[int] = None) -> Optional[int]:
+def seed_option(default: Optional[int] = None, section: str | None = None) -> Optional[int]:
+    """``--seed``; with ``section``, a setting of it (None unless given, help shows the shipped default)."""
+    if section is not None:
+        return setting_option(section, "seed", "--seed", help="Random seed (same seed, same result).")
     return typer.Option(default, "--seed", help="Random seed (same seed, same result).")
+
+
+def thinning_line(n_used: int, n_read: int, setting: str) -> str | None:
+    """The line a command prints when it used fewer samples than it read, e.g.
+    "2,100 of 20,544 samples used: rate_hz 100"; None when it used them all."""
+    return f"{n_used:,} of {n_read:,} samples used: {setting}" if n_used < n_read else None
 
 
 class ProgressDisplay:

@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 
 from ..errors import InputError, describe
-from .common import _fail, _model_files, app, config_option, force_option, seed_option
+from .common import _fail, _model_files, app, config_option, force_option, seed_option, setting_option
 
 
 def _still_joints(model) -> list[str]:
@@ -42,7 +42,8 @@ def export(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp t
            out: Path = typer.Option(..., "--out", help="Compensator file (.json or .npz)."),
            c_source: Optional[Path] = typer.Option(None, "--c", help="Also write C source+header with this prefix."),
            config: Optional[Path] = config_option("export"),
-           max_support: Optional[int] = typer.Option(None, "--max-support", help="Support positions (default 1000)."),
+           max_support: Optional[int] = setting_option("export", "max_support", "--max-support",
+                                                       help="Support positions."),
            force: bool = force_option()):
     """Export the position-only passive feedforward tau_ff(q) = grad V(q) with its storage function;
     a field that fails the passivity check is not written (exit status 1)."""

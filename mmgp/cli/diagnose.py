@@ -8,7 +8,8 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, check_log_headers, _given, _robot_for, app, command_numerics,
-                     config_option, force_option, out_dir_option, parameter_default, quiet_option, robot_option, urdf_option)
+                     config_option, force_option, out_dir_option, parameter_default, quiet_option, robot_option, thinning_line,
+                     urdf_option)
 
 
 @app.command()
@@ -37,6 +38,10 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
               ProgressDisplay(quiet) as shown):
             shown.stage("diagnose", None)  # no stages reported yet: elapsed time only
             diagnoser.fit(log, robot_model).report(tmp)
+            info = diagnoser.result_.info
+            line = thinning_line(info["n_samples"], info["n_samples_in_log"], f"max_samples {diagnoser.max_samples}")
+            if line:
+                shown.step(line)
     except InputError as exc:
         _fail(exc)
     report = out / "report.md"

@@ -5,8 +5,9 @@ import typer
 
 from ..errors import InputError
 from .common import _fail, app
+from .helptext import App
 
-config_app = typer.Typer(no_args_is_help=True, help="The settings files shipped with mmgp (for --config).")
+config_app = App(no_args_is_help=True, help="The settings files shipped with mmgp (for --config).")
 app.add_typer(config_app, name="config")
 
 

@@ -13,8 +13,8 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, check_log_headers,
-                     command_numerics, config_option, force_option, logs_argument, out_dir_option, quiet_option, seed_option,
-                     sweep_limit)
+                     command_numerics, config_option, device_option, force_option, logs_argument, out_dir_option,
+                     quiet_option, seed_option, setting_option, sweep_limit, thinning_line)
 
 
 def _modes(value: Optional[str]):
@@ -122,13 +122,15 @@ def train(logs: List[Path] = logs_argument(),
           out: Path = out_dir_option(),
           config: Optional[Path] = config_option("train", " ('mmgp config show default' prints every setting "
                                                           "at its default)"),
-          modes: Optional[str] = typer.Option(None, "--modes", help="Number of dynamic modes, or 'auto'."),
-          disturbance: Optional[bool] = typer.Option(None, "--disturbance/--no-disturbance",
-                                                     help="Disturbance mode (default on)."),
-          robot: Optional[str] = typer.Option(None, "--robot", help="example-robot-data robot name."),
+          modes: Optional[str] = setting_option("train", "n_modes", "--modes",
+                                                help="Number of dynamic modes, or 'auto'."),
+          disturbance: Optional[bool] = setting_option("train", "disturbance", "--disturbance/--no-disturbance",
+                                                       help="Disturbance mode."),
+          robot: Optional[str] = setting_option("train", "robot", "--robot", help="example-robot-data robot name; "
+                                                "default: the one the log's metadata names."),
           urdf: Optional[Path] = typer.Option(None, "--urdf", help="URDF file of the robot."),
-          device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
-          seed: Optional[int] = seed_option(),
+          device: Optional[str] = device_option("train"),
+          seed: Optional[int] = seed_option(section="train"),
           force: bool = force_option(),
           quiet: bool = quiet_option()):
     """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
@@ -143,6 +145,7 @@ def train(logs: List[Path] = logs_argument(),
         with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(*logs, config)) as tmp, ProgressDisplay(quiet) as shown:
             model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
             model.fit(logs)
+            _step_thinning(shown, model.report_.get("thinning"))
             _write_training_outputs(tmp, model)
     except InputError as exc:
         _fail(exc)
@@ -153,6 +156,14 @@ def train(logs: List[Path] = logs_argument(),
         typer.echo(format_heldout(model.report_["heldout"]))
     for line in model.report_.get("warnings", []):
         typer.echo(f"warning: {line}", err=True)
+
+
+def _step_thinning(shown: ProgressDisplay, thinning: dict | None) -> None:
+    """The line saying how many samples rate_hz left (docs/training.md, Thinning and subsampling)."""
+    if thinning:
+        line = thinning_line(thinning["n_used"], thinning["n_read"], f"rate_hz {thinning['rate_hz']:g}")
+        if line:
+            shown.step(line)
 
 
 def _check_model_device(model, model_dir: Path) -> None:
@@ -171,7 +182,7 @@ def predict(model_dir: Path = typer.Argument(..., help="Folder written by 'mmgp 
             log: Path = typer.Argument(..., help="Log to predict (q, and dq/ddq or estimated)."),
             out: Path = typer.Option(..., "--out", help="Output Parquet file."),
             mode: int = typer.Option(0, "--mode", help="Mode to predict with (0 = nominal)."),
-            device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP + " Default: the model's."),
+            device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP.replace("cpu (default)", "cpu") + " Default: the model's."),
             force: bool = force_option()):
     """Predicted torque and its standard deviation per joint for a log."""
     import pandas as pd

@@ -35,10 +35,19 @@ def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_wind
             raise InputError(f"log has {log.n_joints} joints but the first log has {n_ref}", file=log.path,
                              column="q_0")
         log = complete_derivatives(log, SavitzkyGolay(window_s=diff_window_s, cv=True))
-        if rate_hz is not None:
-            log = downsample(log, rate_hz)
         logs.append(log)
-    return logs
+    return thin_logs(logs, rate_hz)[0]
+
+
+def thin_logs(logs: list[RobotLog], rate_hz: float | None) -> tuple[list[RobotLog], dict | None]:
+    """``logs`` downsampled to about ``rate_hz`` (:func:`mmgp.data.differentiation.downsample`,
+    after differentiating), and what that did: ``{"rate_hz", "n_read", "n_used"}`` (samples read,
+    samples kept; equal when every log's rate is at or below ``rate_hz``); None without a rate."""
+    if rate_hz is None:
+        return logs, None
+    thinned = [downsample(log, rate_hz) for log in logs]
+    return thinned, {"rate_hz": float(rate_hz), "n_read": int(sum(lg.n_samples for lg in logs)),
+                     "n_used": int(sum(lg.n_samples for lg in thinned))}
 
 
 @dataclass
