@@ -13,8 +13,8 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, check_log_headers,
-                     command_numerics, config_option, force_option, logs_argument, out_dir_option, quiet_option, seed_option,
-                     sweep_limit)
+                     command_numerics, config_option, echo_warnings, force_option, logs_argument, out_dir_option,
+                     quiet_option, seed_option, sweep_limit)
 
 
 def _modes(value: Optional[str]):
@@ -151,8 +151,7 @@ def train(logs: List[Path] = logs_argument(),
         from ..evaluation.heldout import format_heldout
 
         typer.echo(format_heldout(model.report_["heldout"]))
-    for line in model.report_.get("warnings", []):
-        typer.echo(f"warning: {line}", err=True)
+    echo_warnings(model.report_.get("warnings"))
 
 
 def _check_model_device(model, model_dir: Path) -> None:
