@@ -366,7 +366,7 @@ class MultimodalGP(BaseEstimator):
         self.labels_ = labels_frame(sem, logs_)
         self.report_ = training_report(
             settings=self._settings_record(), sem=sem, logs=logs_, joint_names=self.joint_names_,
-            robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind,
+            robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind, robot=robot,
             with_friction=fscale is not None, mode_selection=selection,
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
         self.report_.update(windows_shortened_s=shortened, thinning=thinning, dissipation=dissipation,

@@ -1,8 +1,10 @@
-"""Wrong inputs give warnings and no confident finding (mmgp.diagnosis.plausibility).
+"""Wrong inputs give warnings and no confident finding: the log's checks (mmgp.physics.plausibility),
+the same in train, diagnose and compare, and the diagnosis's answer checks (mmgp.diagnosis.plausibility).
 
 References are independent of the code under test: joint limits and rated torques read from the
 Panda URDF's XML, velocities as closed-form derivatives, a log synthesised with Pinocchio's RNEA.
 """
+import json
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -11,8 +13,8 @@ import pytest
 
 from mmgp.data.logs import RobotLog
 from mmgp.diagnosis import Diagnoser
-from mmgp.diagnosis.plausibility import (MIN_TORQUE_SHARE, check, fit_warnings, implausible, limit_warnings,
-                                        velocity_warnings)
+from mmgp.diagnosis.plausibility import MIN_TORQUE_SHARE, check, fit_warnings, implausible
+from mmgp.physics.plausibility import degree_warnings, limit_warnings, log_checks, velocity_warnings
 from mmgp.physics.robot import RobotModel, robot_urdf_path
 
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
@@ -47,8 +49,10 @@ def test_positions_inside_the_limits_pass_and_degrees_fail(panda, urdf_limits):
     t, q, dq, _ = _trajectory(urdf_limits)
     assert limit_warnings(q, panda.pin_model, NAMES) == []
     assert velocity_warnings(t, q, dq, NAMES) == []
-    deg = limit_warnings(np.degrees(q), panda.pin_model, NAMES)
-    assert any("degrees" in w for w in deg) and any("joint limits" in w for w in deg)
+    assert degree_warnings(q, NAMES) == []
+    assert all("joint limits" in w for w in limit_warnings(np.degrees(q), panda.pin_model, NAMES))
+    (deg,) = degree_warnings(np.degrees(q), NAMES)
+    assert "degrees" in deg
     # a joint just past its URDF limit on 5% of the samples
     q2 = q.copy()
     q2[:100, 3] = urdf_limits[3, 1] + 0.1
@@ -136,7 +140,8 @@ def test_findings_too_small_to_name_are_withheld_without_a_warning(panda, urdf_l
              "evidence": {"torque_share": 0.6 * MIN_TORQUE_SHARE}}
     big = {"effect": "armature", "joint": "panda_joint2", "params": {"inertia": 0.09},
            "evidence": {"torque_share": 1.5 * MIN_TORQUE_SHARE}}
-    kept, withheld, warnings = check([small, big], fit, NAMES, panda.pin_model, q=q, dq=dq, t=t, dq_logged=True)
+    log = RobotLog("synthetic", t, q, np.zeros_like(q), dq=dq)
+    kept, withheld, warnings = check([small, big], fit, NAMES, panda.pin_model, log_checks(log, NAMES, panda))
     assert kept == [big] and warnings == []
     assert [w["joint"] for w in withheld] == ["panda_joint1"]
     assert "0.3% of the joint torque's spread" in withheld[0]["withheld_because"]
@@ -149,7 +154,8 @@ def test_a_dead_band_torque_channel_is_warned_about_and_findings_kept(panda, urd
            "evidence": {"torque_share": 1.5 * MIN_TORQUE_SHARE}}
     tau = np.sin(np.arange(300)[:, None] * 0.05 + np.arange(7)[None, :])
     tau[:, 6] = np.where(np.abs(tau[:, 6]) < 0.8, -0.0, tau[:, 6])     # joint 7: 0 below 0.8 N*m (as -0.0)
-    kept, withheld, warnings = check([big], fit, NAMES, panda.pin_model, q=q, dq=dq, t=t, dq_logged=True, tau=tau)
+    log = RobotLog("synthetic", t, q, tau, dq=dq)
+    kept, withheld, warnings = check([big], fit, NAMES, panda.pin_model, log_checks(log, NAMES, panda))
     assert kept == [big] and withheld == []
     assert len(warnings) == 1 and warnings[0].startswith(f"{NAMES[6]}: the torque reads exactly 0 on ")
 
@@ -172,3 +178,136 @@ def test_wrong_inputs_give_warnings_and_no_finding(panda, friction_log, wrong):
     res = _diagnose(log, robot)
     assert res.warnings, wrong
     assert res.findings == [] and res.to_dict()["warnings"] == res.warnings
+
+
+# ---------------------------------------------------------------------------------------------
+# One set of log checks for every command (issue 31 item 3): train, diagnose and compare give
+# the same warnings in the same words, in their reports and on stderr.
+
+def test_degree_detector_against_spans_written_here():
+    """Joints spanning 0.1, 0.2, 0.5 and 3.0 rad logged in degrees span 5.73, 11.5, 28.6 and 172
+    (two turns are 12.57 rad): the last two are flagged, the first two pass (too small to tell);
+    the same joints in radians, and one spinning 12 rad (under two turns), pass."""
+    s = np.linspace(0.0, 1.0, 50)[:, None]
+    q = s * np.array([0.1, 0.2, 0.5, 3.0])
+    names = ["a", "b", "c", "d"]
+    assert degree_warnings(q, names) == []
+    assert degree_warnings(np.c_[q, 12.0 * s], names + ["e"]) == []
+    (w,) = degree_warnings(np.degrees(q), names)
+    assert w.startswith("c, d: the positions span more than two turns (172); angles in degrees?")
+
+
+def test_log_checks_against_the_urdf_and_closed_form_velocities(panda, urdf_limits):
+    t, q, dq, _ = _trajectory(urdf_limits, T=400)
+    tau = np.zeros_like(q)
+    assert log_checks(RobotLog("x", t, q, tau, dq=dq), NAMES, panda) == ([], [])
+    # logged velocities in deg/s while the positions are in rad: every joint told; estimated
+    # velocities are not checked
+    suspect, notes = log_checks(RobotLog("x", t, q, tau, dq=np.degrees(dq)), NAMES, panda)
+    assert len(suspect) == 7 and all("time derivative" in w for w in suspect) and notes == []
+    est = RobotLog("x", t, q, tau, dq=np.degrees(dq), dq_estimated=True)
+    assert log_checks(est, NAMES, panda) == ([], [])
+    # without a robot the limits are not checked, degrees still are
+    suspect, _ = log_checks(RobotLog("x", t, np.degrees(q), tau), NAMES, None)
+    assert len(suspect) == 1 and "degrees" in suspect[0]
+
+
+@pytest.fixture(scope="module")
+def panda_files(panda, urdf_limits, tmp_path_factory):
+    """A Panda log by Pinocchio's RNEA (q and tau only: the commands estimate the derivatives),
+    the same in degrees, and with joints 3 and 4 swapped; each run through train, diagnose and
+    compare (settings that keep each run to seconds)."""
+    from typer.testing import CliRunner
+
+    from mmgp.cli import app
+    from mmgp.data.logs import write_log
+
+    d = tmp_path_factory.mktemp("plausible")
+    t, q, dq, ddq = _trajectory(urdf_limits, T=250)
+    m = panda.pin_model
+    data = m.createData()
+    tau = np.array([pin.rnea(m, data, q[i], dq[i], ddq[i]) for i in range(len(t))])
+    tau += np.random.default_rng(4).normal(scale=0.05, size=tau.shape)
+    perm = [0, 1, 3, 2, 4, 5, 6]
+    cfg = d / "fast.yaml"
+    cfg.write_text("train:\n  semiparametric: none\n  mean_basis: none\n"
+                   "diagnose:\n  gp: false\n  plots: false\n  modes: false\n  separate: none\n")
+    out = {"q": q}
+    for name, qq, tt in (("rad", q, tau), ("deg", np.degrees(q), tau), ("swapped", q[:, perm], tau[:, perm])):
+        log = write_log(d / f"{name}.parquet", t, qq, tt, joint_names=NAMES)
+        runs = {}
+        for cmd, extra in (("train", ["--modes", "1", "--no-disturbance"]), ("diagnose", []),
+                           ("compare", ["--max-train", "40"])):
+            o = d / f"{name}-{cmd}"
+            args = [cmd, str(log), "--robot", "panda", "--out", str(o), "--quiet"] + extra
+            if cmd != "compare":
+                args += ["--config", str(cfg)]
+            res = CliRunner().invoke(app, args)
+            assert res.exit_code == 0, (cmd, res.output)
+            doc = {"train": "report.json", "diagnose": "findings.json", "compare": "compare.json"}[cmd]
+            printed = [ln[len("warning: "):] for ln in res.stderr.splitlines() if ln.startswith("warning: ")]
+            runs[cmd] = (json.loads((o / doc).read_text())["warnings"], printed)
+        out[name] = runs
+    return out
+
+
+def _all_same(runs):
+    """The log's warnings, asserting that each command wrote and printed them alike (the
+    diagnosis's own checks of its answer come after them)."""
+    (train, train_printed), (diag, diag_printed), (comp, comp_printed) = (runs[c] for c in
+                                                                         ("train", "diagnose", "compare"))
+    assert train == train_printed == comp == comp_printed
+    assert diag == diag_printed and diag[:len(train)] == train
+    return train
+
+
+def test_an_unmodified_log_gets_no_log_warning(panda_files):
+    runs = panda_files["rad"]
+    assert _all_same(runs) == []
+    assert not [w for w in runs["diagnose"][0] if "degrees" in w or "joint limits" in w]
+
+
+def test_a_log_in_degrees_gets_the_same_warning_from_every_command(panda_files, urdf_limits):
+    warnings = _all_same(panda_files["deg"])
+    span = np.degrees(panda_files["q"]).max(0) - np.degrees(panda_files["q"]).min(0)   # every joint: 40 to 118 deg
+    assert (span > 4 * np.pi).all()
+    deg = [w for w in warnings if "degrees" in w]
+    assert deg == [f"{', '.join(NAMES)}: the positions span more than two turns ({span.max():.3g}); angles in "
+                   "degrees? (the log must hold radians)"]
+    # and every joint outside its URDF limits
+    assert sorted(w.split(":")[0] for w in warnings if "joint limits" in w) == NAMES
+
+
+def test_swapped_joints_are_told_by_every_command(panda_files, urdf_limits):
+    warnings = _all_same(panda_files["swapped"])
+    # joint 3's positions in joint 4's column: the share beyond joint 4's URDF limits (+- 0.05 rad)
+    q4 = panda_files["q"][:, 2]
+    lo, hi = urdf_limits[3, :2]
+    share = np.mean((q4 < lo - 0.05) | (q4 > hi + 0.05))
+    assert share > 0.01
+    assert [w for w in warnings if w.startswith("panda_joint4:")] == [
+        f"panda_joint4: the logged position leaves the model's joint limits [{lo:.3g}, {hi:.3g}] rad on "
+        f"{100 * share:.0f}% of the samples (range {q4.min():.3g} to {q4.max():.3g}): wrong robot model, joint "
+        "order or units"]
+
+
+def test_a_robotless_demo_log_in_degrees_is_told_by_train(tmp_path):
+    """The shipped 1-DOF replica (no robot model) with its angle in degrees: train names the
+    joint; as shipped, nothing."""
+    from typer.testing import CliRunner
+
+    from mmgp.cli import app
+    from mmgp.data.logs import read_log, write_log
+    from mmgp.resources import demo_files
+
+    lg = read_log(demo_files()[0])
+    q = lg.q[:, 0]
+    assert lg.joint_names == ["lever_joint"] and np.degrees(np.ptp(q)) > 4 * np.pi > np.ptp(q)
+    path = write_log(tmp_path / "deg.parquet", lg.t, np.degrees(lg.q), lg.tau, joint_names=lg.joint_names)
+    res = CliRunner().invoke(app, ["train", str(path), "--modes", "1", "--no-disturbance", "--out",
+                                   str(tmp_path / "m"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    want = (f"lever_joint: the positions span more than two turns ({np.degrees(np.ptp(q)):.3g}); angles in "
+            "degrees? (the log must hold radians)")
+    assert json.loads((tmp_path / "m" / "report.json").read_text())["warnings"] == [want]
+    assert f"warning: {want}" in res.stderr

@@ -38,6 +38,13 @@ def _fail(exc: Exception) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+def echo_warnings(warnings) -> None:
+    """Each warning of a command (the log checks of ``mmgp.physics.plausibility`` first) on its
+    own stderr line, ``warning: ...``: train, diagnose and compare print them alike."""
+    for line in warnings or []:
+        typer.echo(f"warning: {line}", err=True)
+
+
 def check_log_headers(logs) -> None:
     """Refuse a wrong path, file type or column of any of ``logs`` from the file's header alone,
     before a command loads torch, scikit-learn or Pinocchio (seconds): the answer comes at once."""

@@ -8,8 +8,8 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, check_log_headers, _given, _robot_for, app, command_numerics,
-                     config_option, force_option, out_dir_option, parameter_default, quiet_option, robot_option, thinning_line,
-                     urdf_option)
+                     config_option, echo_warnings, force_option, out_dir_option, parameter_default, quiet_option,
+                     robot_option, thinning_line, urdf_option)
 
 
 @app.command()
@@ -46,6 +46,7 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
         _fail(exc)
     report = out / "report.md"
     typer.echo(report.read_text() if report.is_file() else (out / "findings.json").read_text())
+    echo_warnings(diagnoser.result_.warnings)
 
 
 @app.command()
@@ -78,3 +79,4 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
     except InputError as exc:
         _fail(exc)
     typer.echo(format_compare(res))
+    echo_warnings(res["warnings"])

@@ -13,8 +13,8 @@ import typer
 
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, check_log_headers,
-                     command_numerics, config_option, device_option, force_option, logs_argument, out_dir_option,
-                     quiet_option, seed_option, setting_option, sweep_limit, thinning_line)
+                     command_numerics, config_option, device_option, echo_warnings, force_option, logs_argument,
+                     out_dir_option, quiet_option, seed_option, setting_option, sweep_limit, thinning_line)
 
 
 def _modes(value: Optional[str]):
@@ -154,8 +154,7 @@ def train(logs: List[Path] = logs_argument(),
         from ..evaluation.heldout import format_heldout
 
         typer.echo(format_heldout(model.report_["heldout"]))
-    for line in model.report_.get("warnings", []):
-        typer.echo(f"warning: {line}", err=True)
+    echo_warnings(model.report_.get("warnings"))
 
 
 def _step_thinning(shown: ProgressDisplay, thinning: dict | None) -> None:

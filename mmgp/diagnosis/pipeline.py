@@ -395,14 +395,14 @@ def _disturbance(pushes, t: np.ndarray) -> dict:
 
 
 def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
-    """``res`` with what fails the plausibility checks (``plausibility.check``) withheld and
-    the warnings in words."""
+    """``res`` with what fails the plausibility checks (the log's, ``mmgp.physics.plausibility``,
+    and the answer's, ``plausibility.check``) withheld and the warnings in words."""
     from ..physics.context import pin_model
+    from ..physics.plausibility import log_checks
     from .plausibility import check
 
-    dq_logged = log.dq is not None and not getattr(log, "dq_estimated", False)
-    kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot), q=log.q, dq=log.dq,
-                                     t=log.t, dq_logged=dq_logged, tau=log.tau)
+    kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot),
+                                     log_checks(log, res.joint_names, robot))
     return dataclasses.replace(res, findings=kept, withheld=withheld, warnings=warnings)
 
 

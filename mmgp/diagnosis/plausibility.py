@@ -6,82 +6,19 @@ offset of -183 N*m, a payload of 590 kg). Each check here gives a warning in wor
 a check is withheld from ``findings`` (kept under ``withheld_findings`` with the reason), never
 silently reported.
 
-Input checks (the log against the model): positions inside the model's joint limits, angles
-that are radians, logged velocities that are the time derivative of the logged positions.
-Answer checks: the model with the found physics must predict each joint's torque better than
-the torque's mean (held-out normalised MSE < 1; a nominal model worse than the mean on most
-joints is told), and each finding's magnitude must be physically possible (a torque offset
-or friction level within the joint's rated torque, a payload mass positive and below the
-robot's own mass). A finding whose torque is under ``MIN_TORQUE_SHARE`` of its joint torque's
+Input checks (the log against the model: positions inside the model's joint limits, angles
+that are radians, logged velocities that are the time derivative of the logged positions) are
+the log-level checks every command runs, ``mmgp.physics.plausibility.log_checks``; when one of
+them fails, every finding is withheld. Answer checks (here): the model with the found physics
+must predict each joint's torque better than the torque's mean (held-out normalised MSE < 1; a
+nominal model worse than the mean on most joints is told), and each finding's magnitude must
+be physically possible (a torque offset or friction level within the joint's rated torque, a
+payload mass positive and below the robot's own mass). A finding whose torque is under ``MIN_TORQUE_SHARE`` of its joint torque's
 spread is withheld as too small to name (no warning).
 """
 from __future__ import annotations
 
 import numpy as np
-
-from ..data.channels import dead_band_warnings
-
-#: angles beyond the model's limits by more than this (rad) count as violations
-LIMIT_MARGIN = 0.05
-#: share of the samples beyond the limits that makes a warning
-LIMIT_FRACTION = 0.01
-#: logged dq against the derivative of the logged q: lowest correlation, largest scale mismatch
-MIN_DQ_CORRELATION = 0.7
-MAX_DQ_SCALE_RATIO = 1.5
-
-
-def _limited_joints(model) -> list[tuple[int, float, float]]:
-    """(joint index, lower, upper) of the revolute/prismatic joints with finite limits."""
-    out = []
-    for k, j in enumerate(range(1, model.njoints)):
-        if model.nqs[j] != 1:
-            continue
-        i = model.idx_qs[j]
-        lo, hi = float(model.lowerPositionLimit[i]), float(model.upperPositionLimit[i])
-        if np.isfinite(lo) and np.isfinite(hi) and hi > lo and hi - lo < 1e3:
-            out.append((k, lo, hi))
-    return out
-
-
-def limit_warnings(q: np.ndarray, model, names: list) -> list[str]:
-    """Warnings for positions ``q`` (T, n) rad outside the limits of pinocchio ``model``, and
-    for angle ranges that only degrees explain."""
-    out = []
-    for k, lo, hi in _limited_joints(model):
-        beyond = (q[:, k] < lo - LIMIT_MARGIN) | (q[:, k] > hi + LIMIT_MARGIN)
-        if beyond.mean() > LIMIT_FRACTION:
-            out.append(f"{names[k]}: the logged position leaves the model's joint limits [{lo:.3g}, {hi:.3g}] rad "
-                       f"on {100 * beyond.mean():.0f}% of the samples (range {q[:, k].min():.3g} to "
-                       f"{q[:, k].max():.3g}): wrong robot model, joint order or units")
-    span = np.ptp(q, axis=0)
-    deg = [names[k] for k in range(q.shape[1]) if span[k] > 4 * np.pi]
-    if deg:
-        out.append(f"{', '.join(deg)}: the positions span more than two turns ({span.max():.3g}); angles in "
-                   "degrees? (the log must hold radians)")
-    return out
-
-
-def velocity_warnings(t: np.ndarray, q: np.ndarray, dq: np.ndarray, names: list) -> list[str]:
-    """Warnings where logged velocities ``dq`` (T, n) are not the time derivative of ``q``: the
-    central difference of q over about 20 ms, correlated with dq and compared in scale."""
-    dt = float(np.median(np.diff(t)))
-    h = max(1, int(round(0.01 / max(dt, 1e-12))))
-    if len(t) <= 2 * h + 10:
-        return []
-    fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
-    v = dq[h:-h]
-    out = []
-    for k in range(q.shape[1]):
-        a, b = v[:, k] - v[:, k].mean(), fd[:, k] - fd[:, k].mean()
-        sa, sb = np.sqrt(a @ a), np.sqrt(b @ b)
-        if sa == 0 or sb == 0:
-            continue
-        corr, ratio = float(a @ b / (sa * sb)), float(sa / sb)
-        if corr < MIN_DQ_CORRELATION or not 1 / MAX_DQ_SCALE_RATIO < ratio < MAX_DQ_SCALE_RATIO:
-            out.append(f"{names[k]}: the logged velocity is not the time derivative of the logged position "
-                       f"(correlation {corr:.2f}, scale ratio {ratio:.2f}): columns swapped, mixed units or "
-                       "a corrupt log")
-    return out
 
 
 def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
@@ -170,15 +107,15 @@ def immaterial(finding: dict) -> str | None:
             f"below {100 * MIN_TORQUE_SHARE:g}%")
 
 
-def check(findings: list, fit: dict, names: list, model, *, q, dq, t, dq_logged: bool, tau=None):
-    """(kept findings, withheld findings each with its ``withheld_because``, warnings); ``tau``
-    (T, n) the logged torques, for the dead-band check (a warning only: it concerns one joint)."""
-    warnings = limit_warnings(q, model, names)
-    if dq_logged:
-        warnings += velocity_warnings(t, q, dq, names)
+def check(findings: list, fit: dict, names: list, model, log_checks: tuple = ((), ())):
+    """(kept findings, withheld findings each with its ``withheld_because``, warnings);
+    ``log_checks`` the (suspect, informing) warnings of the log
+    (``mmgp.physics.plausibility.log_checks``): a suspect one withholds every finding, an
+    informing one (a dead-band torque channel: it concerns one joint) is only told."""
+    suspect, notes = log_checks
+    warnings = list(suspect)
     inputs_bad = bool(warnings)
-    if tau is not None:
-        warnings += dead_band_warnings(tau, names)
+    warnings += notes
     fw, bad = fit_warnings(fit, names)
     warnings += fw
     kept, withheld = [], []

@@ -39,6 +39,7 @@ from ..data.logs import RobotLog
 from ..errors import InputError
 from ..data.outputs import atomic_write_bytes, jsonable
 from ..data.folds import default_gap, spread_subset, time_block_folds
+from ..physics.plausibility import log_warnings
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
@@ -89,7 +90,9 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
     * ``nmse[method]`` (n,): pooled out-of-fold normalised MSE per joint; ``rmse[method]`` (n,) N*m;
       ``nmse_per_fold[method]`` (n_folds, n): each fold's MSE over the log's torque variance;
     * ``tau_std`` (n,) N*m; ``gp_improves_rigid_body`` (n,) bools: rigid_body_gp < rigid_body;
-      ``timings`` (s).
+      ``timings`` (s);
+    * ``warnings``: the log's checks in words (:func:`mmgp.physics.plausibility.log_warnings`,
+      the same as train's and the diagnosis's); they change no figure.
     """
     # Each fold is small factorisations (hyperparameters on a few hundred samples, conditioning
     # on max_train): one thread (mmgp.threads); on the shared 2-core machine two threads made a
@@ -125,6 +128,7 @@ def _compare(log: RobotLog, robot, *, n_folds, gap, max_train, seed, gp_options,
                                                opts=opts, hyper_fit=hyper_fit, block_s=block_s,
                                                say=progress or (lambda m: None))
     out = _result(log, robot, tau, pred, folds, n_folds=n_folds, gap=gap, max_train=max_train, seed=seed)
+    out["warnings"] = log_warnings(log, out["joint_names"], robot)
     out.update(folds=fold_info, gp_options=dict(opts), hyper_fit=hyper_fit, block_s=float(block_s),
                timings={"fit_predict_s": t_fit, "total_s": time.perf_counter() - t0})
     return out

@@ -62,6 +62,7 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
     out = Path(out_dir)
     logs = ", ".join(Path(str(p)).name for p in report["logs"])
     page = HtmlReport(title, subtitle=f"{logs}: {report['n_samples']} samples")
+    _warnings_section(page, report.get("warnings"))
     page.section("Key figures").key_figures(_training_key_figures(report))
     if evaluation is not None:
         page.section("Classification against ground truth",
@@ -99,6 +100,13 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
     return page.write(out / "report.html")
 
 
+def _warnings_section(page: HtmlReport, warnings: list | None) -> None:
+    """The log's warnings (``mmgp.physics.plausibility``), first on the page, as the diagnosis's."""
+    if warnings:
+        page.section("Warnings")
+        page.table(["warning"], [[w] for w in warnings], kind="warnings")
+
+
 def _heldout_section(page: HtmlReport, heldout: dict | None) -> None:
     """The held-out normalised MSE per joint of the model, the rigid body and the mean (report.json
     ``heldout``, :func:`mmgp.evaluation.heldout.heldout_score`)."""
@@ -123,6 +131,7 @@ def write_compare_report(out_dir: str | Path, result: dict) -> Path:
     methods = result["methods"]
     page = HtmlReport("mmgp compare", subtitle=f"{Path(str(result.get('log', ''))).name}: "
                                                f"{result['n_samples']} samples")
+    _warnings_section(page, result.get("warnings"))
     page.section("Key figures").key_figures({
         "robot": result.get("robot"), "samples": result["n_samples"], "time-block folds": result["n_folds"],
         "gap [samples]": result["gap"], "gap [s]": result["gap_s"],

@@ -8,16 +8,17 @@ from typing import Sequence
 import numpy as np
 
 from .._version import __version__
-from ..data.channels import dead_band_warnings
 from ..data.logs import RobotLog
+from ..physics.plausibility import log_warnings
 from .features import input_names
 
 
 def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_names: list[str],
                     robot_spec: dict | None, semiparametric: str, basis_kind: str | None,
-                    with_friction: bool, mode_selection: dict | None, timings: dict) -> dict:
+                    with_friction: bool, mode_selection: dict | None, timings: dict, robot=None) -> dict:
     """The report of one training run: ``sem`` a fitted MultimodalSEM on ``logs``; ``settings``
-    the estimator's JSON-able settings; ``timings`` in s."""
+    the estimator's JSON-able settings; ``timings`` in s; ``robot`` the RobotModel or None, for
+    the log checks (``warnings``: :func:`mmgp.physics.plausibility.log_warnings`)."""
     n = len(joint_names)
     return {
         "mmgp_version": __version__,
@@ -28,7 +29,7 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
         "derivatives_estimated": {"dq": any(lg.dq_estimated for lg in logs),
                                   "ddq": any(lg.ddq_estimated for lg in logs)},
         "robot": robot_spec,
-        "warnings": dead_band_warnings(np.concatenate([lg.tau for lg in logs]), joint_names),
+        "warnings": log_warnings(logs, joint_names, robot),
         "semiparametric": semiparametric,
         # The per-mode coefficients themselves are in model.npz (basis_coef_<k>).
         "mean_basis": {"kind": basis_kind, "rank": int(sem.basis_rank_)},

@@ -1,0 +1,117 @@
+"""Whether a log can be believed: the checks of a log's arrays, alone and against the robot model.
+
+Wrong inputs (another robot's model, angles in degrees, joints in another order, a log of noise)
+still give numbers; ``mmgp train``, ``mmgp diagnose`` and ``mmgp compare`` all call
+:func:`log_checks` once on the logs they checked and read, and report its warnings in the same
+words (report.json ``warnings``, the diagnosis's ``warnings``, compare.json ``warnings``), so
+every command warns the same way. The checks only warn: labels and figures are unchanged (the
+diagnosis withholds its findings when a check of the first kind fails,
+``mmgp.diagnosis.plausibility``).
+
+Checks that make the log's numbers suspect: positions inside the model's joint limits (another
+robot, joints in another order, or units), positions that span more than two turns (degrees:
+the log must hold radians; no model needed), logged velocities that are the time derivative of
+the logged positions (columns swapped, mixed units, a log of noise). A check that only informs:
+a torque channel that reads one exact value on most samples (``mmgp.data.channels``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..data.channels import dead_band_warnings
+from .context import pin_model
+
+#: angles beyond the model's limits by more than this (rad) count as violations
+LIMIT_MARGIN = 0.05
+#: share of the samples beyond the limits that makes a warning
+LIMIT_FRACTION = 0.01
+#: a joint whose positions span more than this (rad, two turns) is read as logged in degrees
+MAX_SPAN_RAD = 4 * np.pi
+#: logged dq against the derivative of the logged q: lowest correlation, largest scale mismatch
+MIN_DQ_CORRELATION = 0.7
+MAX_DQ_SCALE_RATIO = 1.5
+
+
+def _limited_joints(model) -> list[tuple[int, float, float]]:
+    """(joint index, lower, upper) of the revolute/prismatic joints with finite limits."""
+    out = []
+    for k, j in enumerate(range(1, model.njoints)):
+        if model.nqs[j] != 1:
+            continue
+        i = model.idx_qs[j]
+        lo, hi = float(model.lowerPositionLimit[i]), float(model.upperPositionLimit[i])
+        if np.isfinite(lo) and np.isfinite(hi) and hi > lo and hi - lo < 1e3:
+            out.append((k, lo, hi))
+    return out
+
+
+def limit_warnings(q: np.ndarray, model, names: list) -> list[str]:
+    """Warnings for positions ``q`` (T, n) rad outside the limits of pinocchio ``model``."""
+    out = []
+    for k, lo, hi in _limited_joints(model):
+        beyond = (q[:, k] < lo - LIMIT_MARGIN) | (q[:, k] > hi + LIMIT_MARGIN)
+        if beyond.mean() > LIMIT_FRACTION:
+            out.append(f"{names[k]}: the logged position leaves the model's joint limits [{lo:.3g}, {hi:.3g}] rad "
+                       f"on {100 * beyond.mean():.0f}% of the samples (range {q[:, k].min():.3g} to "
+                       f"{q[:, k].max():.3g}): wrong robot model, joint order or units")
+    return out
+
+
+def degree_warnings(q: np.ndarray, names: list) -> list[str]:
+    """One warning naming the joints of ``q`` (T, n) whose positions span more than
+    :data:`MAX_SPAN_RAD` (two turns): a range only degrees explain. Needs no robot model."""
+    span = np.ptp(q, axis=0)
+    deg = [names[k] for k in range(q.shape[1]) if span[k] > MAX_SPAN_RAD]
+    if not deg:
+        return []
+    return [f"{', '.join(deg)}: the positions span more than two turns ({span.max():.3g}); angles in "
+            "degrees? (the log must hold radians)"]
+
+
+def velocity_warnings(t: np.ndarray, q: np.ndarray, dq: np.ndarray, names: list) -> list[str]:
+    """Warnings where logged velocities ``dq`` (T, n) are not the time derivative of ``q``: the
+    central difference of q over about 20 ms, correlated with dq and compared in scale."""
+    dt = float(np.median(np.diff(t)))
+    h = max(1, int(round(0.01 / max(dt, 1e-12))))
+    if len(t) <= 2 * h + 10:
+        return []
+    fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
+    v = dq[h:-h]
+    out = []
+    for k in range(q.shape[1]):
+        a, b = v[:, k] - v[:, k].mean(), fd[:, k] - fd[:, k].mean()
+        sa, sb = np.sqrt(a @ a), np.sqrt(b @ b)
+        if sa == 0 or sb == 0:
+            continue
+        corr, ratio = float(a @ b / (sa * sb)), float(sa / sb)
+        if corr < MIN_DQ_CORRELATION or not 1 / MAX_DQ_SCALE_RATIO < ratio < MAX_DQ_SCALE_RATIO:
+            out.append(f"{names[k]}: the logged velocity is not the time derivative of the logged position "
+                       f"(correlation {corr:.2f}, scale ratio {ratio:.2f}): columns swapped, mixed units or "
+                       "a corrupt log")
+    return out
+
+
+def log_checks(logs, names: list, robot=None) -> tuple[list[str], list[str]]:
+    """(warnings that make the numbers of ``logs`` suspect, warnings that only inform).
+
+    ``logs``: a :class:`mmgp.RobotLog` or a list of them (one robot's recordings, checked and
+    read); ``names`` (n,) the joint names; ``robot``: a RobotModel (or pinocchio model) of the
+    log's joints, or None (then the limits are not checked). Velocities are checked where they
+    were logged (not estimated), per log."""
+    logs = list(logs) if isinstance(logs, (list, tuple)) else [logs]
+    q = np.concatenate([lg.q for lg in logs])
+    suspect = limit_warnings(q, pin_model(robot), names) if robot is not None else []
+    suspect += degree_warnings(q, names)
+    for lg in logs:
+        if lg.dq is not None and not getattr(lg, "dq_estimated", False):
+            where = f"{Path(str(lg.path)).name}: " if len(logs) > 1 else ""
+            suspect += [where + w for w in velocity_warnings(lg.t, lg.q, lg.dq, names)]
+    return suspect, dead_band_warnings(np.concatenate([lg.tau for lg in logs]), names)
+
+
+def log_warnings(logs, names: list, robot=None) -> list[str]:
+    """All the warnings of :func:`log_checks`, in its order."""
+    suspect, notes = log_checks(logs, names, robot)
+    return suspect + notes
