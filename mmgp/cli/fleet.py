@@ -11,8 +11,8 @@ from .common import (ProgressDisplay, _fail, _given, app, force_option, logs_arg
                      robot_option, urdf_option)
 
 
-def _progress(shown: ProgressDisplay):
-    shown.stage("fleet: logs", None)  # the count is known when the first log is back
+def _progress(shown: ProgressDisplay, total: int):
+    shown.stage("fleet: logs", total)
 
     def step(done: int, total: int, outcome: dict) -> None:
         what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
@@ -64,12 +64,14 @@ def fleet(logs: List[Path] = logs_argument("Log files, or folders of logs (*.par
     from ..data.outputs import atomic_output_dir
     from ..fleet import Fleet
     from ..fleet.engine import RayMissingError
+    from ..fleet.fleet import expand_logs
 
     runner = Fleet(robot=robot, urdf=urdf, train=train, engine="serial" if serial else "ray", address=address,
                    workers=workers, baseline=baseline)
     try:
         with atomic_output_dir(out, force=force, inputs=_given(*logs)) as tmp, ProgressDisplay(quiet) as shown:
-            runner.fit(logs, progress=_progress(shown))
+            runner.fit(logs, progress=_progress(shown, len(expand_logs(logs))))
+            shown.stage("fleet: writing the table, trends, drift flags and report", None)
             runner.write(tmp)
     except InputError as exc:
         _fail(exc)
