@@ -4,11 +4,11 @@ Runs ``mmgp train``, ``mmgp diagnose`` and ``mmgp fleet --serial`` as subprocess
 written to a temporary folder: the shipped 1-DOF demo recording, a simulated Panda log (MuJoCo,
 ``mmgp.sim.concealed``: Coulomb friction on joint 4 and pushes) and two simulated lever logs for
 the fleet. Each command runs *piped* (stdout and stderr are pipes: the plain lines a log file
-gets) and, with ``--tty``, also on a pseudo-terminal (the rich bar). Every line (every redraw of
+gets) and/or (``--how``) on a pseudo-terminal (the rich bar). Every line (every redraw of
 the bar on a terminal, condensed) is stamped with the seconds since the command started; the
 longest gap between two lines and the whole transcript are printed per command.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=$PWD python benchmarks/bench_progress.py [--samples 1500] [--tty]
+    OMP_NUM_THREADS=1 PYTHONPATH=$PWD python benchmarks/bench_progress.py [--samples 500] [--how piped,terminal]
         [--commands train_demo,train_panda,diagnose_panda,fleet]
 """
 from __future__ import annotations
@@ -135,21 +135,21 @@ def longest_gap(lines, end: float | None = None) -> float:
 
 
 def condensed(lines, every_s: float = 5.0):
-    """A terminal transcript without most of the bar's redraws: a bar line is kept when its
-    text before the numbers changed or ``every_s`` passed since the last one kept."""
-    kept, last_key, last_t = [], None, -1e9
+    """A terminal transcript without most of the bar's redraws: a line is kept when no line with
+    the same text before its numbers was kept in the last ``every_s`` seconds."""
+    kept, last = [], {}
     for t, s, line in lines:
-        key = re.sub(r"[\d:.\-/━╸╺ ]+", " ", line)[:40]
-        if key != last_key or t - last_t >= every_s:
+        key = re.sub(r"[\d:.\-/━╸╺ ]+", " ", line)[:50]
+        if t - last.get(key, -1e9) >= every_s:
             kept.append((t, s, line))
-            last_key, last_t = key, t
+            last[key] = t
     return kept
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--samples", type=int, default=1500, help="samples of the simulated Panda log")
-    ap.add_argument("--tty", action="store_true", help="also run each command on a pseudo-terminal")
+    ap.add_argument("--samples", type=int, default=500, help="samples of the simulated Panda log")
+    ap.add_argument("--how", default="piped", help="piped, terminal (a pseudo-terminal) or piped,terminal")
     ap.add_argument("--commands", default="train_demo,train_panda,diagnose_panda,fleet")
     a = ap.parse_args()
     summary = []
@@ -157,7 +157,7 @@ def main() -> None:
         tmp = Path(tmp)
         logs = make_logs(tmp, a.samples)
         print(f"logs: demo {logs['demo'].name}, panda {a.samples} samples (7 DOF), fleet 2 lever logs", flush=True)
-        for how, runner in [("piped", run_piped)] + ([("terminal", run_tty)] if a.tty else []):
+        for how, runner in [(h, {"piped": run_piped, "terminal": run_tty}[h]) for h in a.how.split(",")]:
             out = tmp / how
             out.mkdir()
             for name, args in commands(logs, out).items():

@@ -181,8 +181,7 @@ def heartbeat_seconds() -> float:
 
 class ProgressDisplay:
     """Progress of long work on stderr; nothing at all when ``quiet``. On a terminal: a bar per
-    stage with done/total, elapsed time and ETA (rich), what runs now beside it, the stage's lines
-    above it. Otherwise (a pipe, a log file): the lines alone, each prefixed with the clock time
+    stage with done/total, elapsed time and ETA (rich), the stage's lines above it. Otherwise (a pipe, a log file): the lines alone, each prefixed with the clock time
     and the seconds since the command started, and a heartbeat: after ``heartbeat_s`` (default
     :func:`heartbeat_seconds`) without a line, "still <what runs now> (N s)".
 
@@ -216,10 +215,9 @@ class ProgressDisplay:
             return self
         if console.is_terminal:
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                                 TextColumn("{task.fields[now]}"), console=console)
+                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console)
             self._bar.start()
-            self._task = self._bar.add_task("starting", total=None, now="")
+            self._task = self._bar.add_task("starting", total=None)
             self._placeholder = True  # no empty line before the first stage; replaced by it
         else:
             beat = threading.Thread(target=self._heartbeat, name="mmgp-heartbeat", daemon=True)
@@ -277,8 +275,6 @@ class ProgressDisplay:
                 self.step(f"{message} [{done + 1}/{of or total}]", completed=done)
             else:
                 self.step(message)
-            if self._bar is not None and self._task is not None:
-                self._bar.update(self._task, now=message)
 
     def waiting(self, what: str) -> None:
         """Say what runs now without a line of its own: the bar's text on a terminal, the
@@ -304,7 +300,7 @@ class ProgressDisplay:
                     self._placeholder = False
                 else:
                     self._finish_stage()
-                self._task = self._bar.add_task(description, total=total, now="")
+                self._task = self._bar.add_task(description, total=total)
             else:
                 self._print(description + (f" ({total} steps)" if total else ""))
 
