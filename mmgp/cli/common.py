@@ -181,9 +181,10 @@ def heartbeat_seconds() -> float:
 
 class ProgressDisplay:
     """Progress of long work on stderr; nothing at all when ``quiet``. On a terminal: a bar per
-    stage with done/total, elapsed time and ETA (rich), the stage's lines above it. Otherwise (a pipe, a log file): the lines alone, each prefixed with the clock time
-    and the seconds since the command started, and a heartbeat: after ``heartbeat_s`` (default
-    :func:`heartbeat_seconds`) without a line, "still <what runs now> (N s)".
+    stage with done/total, elapsed time and ETA (rich), the stage's lines above it (from the
+    start: never an empty line). Otherwise (a pipe, a log file): the lines alone, each after the
+    clock time and the seconds since the command started, and a heartbeat: after ``heartbeat_s``
+    (default :func:`heartbeat_seconds`) without a line, "still <what runs now> (N s)".
 
     While open it listens to the library's stage reports (:mod:`mmgp.progress`): each is a line
     and what runs now. Use as a context manager; :meth:`stage` starts a bar (``follow``: its count

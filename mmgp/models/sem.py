@@ -282,6 +282,8 @@ class MultimodalSEM:
                               np.bincount(states % K, minlength=K).tolist(), time.perf_counter() - ts)
             if self.progress is not None:
                 self.progress(rec)
+            else:  # nobody takes the sweeps: a stage report each (the diagnosis's learner)
+                report(f"EM sweep {sweep}: {changed:.1%} of the labels changed ({rec.seconds:.1f} s)")
             if monitor.update(rec, step.probs):
                 break
             fleeting = sweep + 1 >= self.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
