@@ -287,9 +287,10 @@ class ProgressDisplay:
             if self._bar is not None and self._task is not None:
                 self._bar.update(self._task, description=what)
 
-    def stage(self, description: str, total: int | None, follow: str | None = None) -> None:
+    def stage(self, description: str, total: int | None, follow: str | None = None, line: bool = True) -> None:
         """Start a bar for ``total`` steps (None: unknown, no ETA); the previous one is completed.
-        ``follow``: the library's reports of this work set the count done."""
+        ``follow``: the library's reports of this work set the count done. Piped, the stage is a
+        line of its own unless ``line`` is False (then the heartbeat names it)."""
         if self.quiet:
             return
         with self._lock:
@@ -302,7 +303,7 @@ class ProgressDisplay:
                 else:
                     self._finish_stage()
                 self._task = self._bar.add_task(description, total=total)
-            else:
+            elif line:
                 self._print(description + (f" ({total} steps)" if total else ""))
 
     def step(self, line: str | None = None, *, completed: int | None = None, advance: int = 0,

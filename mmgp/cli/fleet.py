@@ -12,7 +12,8 @@ from .common import (ProgressDisplay, _fail, _given, app, force_option, logs_arg
 
 
 def _progress(shown: ProgressDisplay, total: int):
-    shown.stage("fleet: logs", total)
+    # no line of its own when piped: a bad log time found before the first log stays one error line
+    shown.stage("fleet: logs", total, line=False)
 
     def step(done: int, total: int, outcome: dict) -> None:
         what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
