@@ -17,6 +17,7 @@ PKG = Path(__file__).resolve().parents[1] / "mmgp"
 # Lowest first. A module's layer is that of its longest listed prefix.
 LAYERS = {
     "mmgp._version": 1, "mmgp.errors": 1, "mmgp.config": 1, "mmgp.resources": 1, "mmgp.threads": 1,
+    "mmgp.progress": 1,
     "mmgp.data": 2,
     "mmgp.gp": 3,
     "mmgp.physics": 4,

@@ -151,13 +151,15 @@ def test_thinning_to_max_samples_is_said(case, tmp_path):
                    f"  max_samples: {n_log // 2}\n")
     res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(tmp_path / "o"), "--config", str(cfg)])
     assert res.exit_code == 0, res.output
-    said = re.search(rf"^{n_log // 2:,} of ([\d,]+) samples used: max_samples {n_log // 2}$", res.output, re.M)
+    # (a piped progress line, after its clock time and seconds since the start)
+    said = re.search(rf"^\d\d:\d\d:\d\d +\d+\.\ds ({n_log // 2:,} of ([\d,]+) samples used: max_samples {n_log // 2})$",
+                     res.output, re.M)
     assert said, res.output
-    n_read = int(said.group(1).replace(",", ""))
+    n_read = int(said.group(2).replace(",", ""))
     assert n_log - 100 < n_read <= n_log       # at most the trimmed ends (a few filter lengths) less
     info = json.loads((tmp_path / "o" / "findings.json").read_text())["info"]
     assert (info["n_samples"], info["n_samples_in_log"]) == (n_log // 2, n_read)
-    line = said.group(0)
+    line = said.group(1)
     res = runner.invoke(app, ["diagnose", str(case["log"]), "--out", str(tmp_path / "q"), "--config", str(cfg),
                               "--quiet"])
     assert res.exit_code == 0 and line not in res.output

@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import re
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
@@ -297,9 +298,13 @@ def test_progress_bar_with_eta_on_a_terminal_lines_elsewhere_nothing_when_quiet(
     assert "ETA" in term and "EM, 1 mode(s)" in term and "EM, 2 mode(s)" in term
     assert "2/2" in term and "3/3" in term                            # stages that end early show as complete
     assert "now trying 2" in term and "\x1b[" in term
-    pipe = outputs["pipe"].splitlines()
-    assert len(pipe) == 6 and "\x1b[" not in outputs["pipe"] and "ETA" not in outputs["pipe"]
-    assert pipe[2] == "  --modes auto: 1 mode(s) done; now trying 2" and pipe[0].startswith("  sweep   0")
+    # piped: each line after its clock time and seconds since the start ("23:59:03   33.8s "),
+    # a line per stage and per sweep
+    pipe = [re.sub(r"^\d\d:\d\d:\d\d +\d+\.\ds ", "", line) for line in outputs["pipe"].splitlines()]
+    assert all(re.match(r"\d\d:\d\d:\d\d +\d+\.\ds ", line) for line in outputs["pipe"].splitlines())
+    assert len(pipe) == 8 and "\x1b[" not in outputs["pipe"] and "ETA" not in outputs["pipe"]
+    assert pipe[0] == "EM, 1 mode(s) (4 steps)" and pipe[1].startswith("  sweep   0")
+    assert pipe[3] == "  --modes auto: 1 mode(s) done; now trying 2" and pipe[4] == "EM, 2 mode(s) (4 steps)"
     assert outputs["quiet"] == ""
 
 

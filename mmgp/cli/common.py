@@ -3,8 +3,10 @@ robots, the options several commands take, and progress display."""
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
+import time
 from pathlib import Path
 from typing import Iterator, List, Optional
 
@@ -170,31 +172,71 @@ def thinning_line(n_used: int, n_read: int, setting: str) -> str | None:
     return f"{n_used:,} of {n_read:,} samples used: {setting}" if n_used < n_read else None
 
 
-class ProgressDisplay:
-    """Progress of long work on stderr: on a terminal a bar per stage with done/total, elapsed
-    time and ETA (rich) under the stage's lines; otherwise the lines alone (logs stay readable);
-    nothing at all when ``quiet``. Use as a context manager; :meth:`stage` starts a bar,
-    :meth:`step` reports a step (a line and/or the count done)."""
+#: seconds without a line after which a piped display says what it is still doing
+HEARTBEAT_S = 5.0
+HEARTBEAT_ENV = "MMGP_HEARTBEAT_S"
 
-    def __init__(self, quiet: bool = False, console=None):
+
+def heartbeat_seconds() -> float:
+    """The heartbeat interval: ``MMGP_HEARTBEAT_S`` when set to a positive number, else 5 s."""
+    try:
+        value = float(os.environ.get(HEARTBEAT_ENV, ""))
+    except ValueError:
+        return HEARTBEAT_S
+    return value if value > 0 else HEARTBEAT_S
+
+
+class ProgressDisplay:
+    """Progress of long work on stderr; nothing at all when ``quiet``. On a terminal: a bar per
+    stage with done/total, elapsed time and ETA (rich), the stage's lines above it (from the
+    start: never an empty line). Otherwise (a pipe, a log file): the lines alone, each after the
+    clock time and the seconds since the command started, and a heartbeat: after ``heartbeat_s``
+    (default :func:`heartbeat_seconds`) without a line, "still <what runs now> (N s)".
+
+    While open it listens to the library's stage reports (:mod:`mmgp.progress`): each is a line
+    and what runs now. Use as a context manager; :meth:`stage` starts a bar (``follow``: its count
+    follows the library's reports of that work, e.g. "diagnosis"), :meth:`step` reports a step."""
+
+    def __init__(self, quiet: bool = False, console=None, heartbeat_s: float | None = None):
         self.quiet = quiet
         self._console = console
         self._bar = None
         self._task = None
+        self._follow = self._follow_total = None
+        self._placeholder = False
+        self.heartbeat_s = heartbeat_s if heartbeat_s is not None else heartbeat_seconds()
+        self._lock = threading.RLock()
+        self._t0 = self._last = self._since = time.monotonic()
+        self._what = "starting"
+        self._stop = threading.Event()
+        self._exits = contextlib.ExitStack()
 
     def __enter__(self) -> "ProgressDisplay":
         from rich.console import Console
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                    TimeRemainingColumn)
 
+        from ..progress import listening
+
         console = self._console = self._console or Console(stderr=True)
-        if not self.quiet and console.is_terminal:
+        if self.quiet:
+            return self
+        if console.is_terminal:
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                                  TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console)
             self._bar.start()
+            self._task = self._bar.add_task("starting", total=None)
+            self._placeholder = True  # no empty line before the first stage; replaced by it
+        else:
+            beat = threading.Thread(target=self._heartbeat, name="mmgp-heartbeat", daemon=True)
+            beat.start()
+            self._exits.callback(beat.join)
+            self._exits.callback(self._stop.set)
+        self._exits.enter_context(listening(self._report))
         return self
 
     def __exit__(self, *exc) -> None:
+        self._exits.close()
         if self._bar is not None:
             self._finish_stage()
             self._bar.stop()
@@ -214,11 +256,62 @@ class ProgressDisplay:
     def _current(self):
         return next(t for t in self._bar.tasks if t.id == self._task)
 
-    def stage(self, description: str, total: int | None) -> None:
-        """Start a bar for ``total`` steps (None: unknown, no ETA); the previous one is completed."""
-        if self._bar is not None:
-            self._finish_stage()
-            self._task = self._bar.add_task(description, total=total)
+    def _print(self, line: str) -> None:
+        """``line`` above the bar, or on its own with the time prefix (under the lock)."""
+        with self._lock:
+            now = time.monotonic()
+            self._last = now
+            if self._bar is not None:
+                self._bar.console.print(line, markup=False, highlight=False, emoji=False)
+            else:
+                stamp = f"{time.strftime('%H:%M:%S')} {now - self._t0:6.1f}s "
+                self._console.print(stamp + line, markup=False, highlight=False, emoji=False, soft_wrap=True)
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(min(1.0, self.heartbeat_s / 5)):
+            with self._lock:
+                now = time.monotonic()
+                if now - self._last >= self.heartbeat_s:
+                    self._print(f"  still {self._what} ({now - self._since:.0f} s)")
+
+    def _report(self, message: str, *, work: str = "", done: int | None = None, total: int | None = None) -> None:
+        """A stage report of the library (:func:`mmgp.progress.report`): a line, and what runs now."""
+        with self._lock:
+            self._what, self._since = message, time.monotonic()
+            if self._follow and work == self._follow and done is not None:
+                of = self._current().total if self._bar is not None else self._follow_total
+                self.step(f"{message} [{done + 1}/{of or total}]", completed=done)
+            else:
+                self.step(message)
+
+    def waiting(self, what: str) -> None:
+        """Say what runs now without a line of its own: the bar's text on a terminal, the
+        heartbeat's "still <what>" when piped (a quick failure after it stays one error line)."""
+        if self.quiet:
+            return
+        with self._lock:
+            self._what, self._since = what, time.monotonic()
+            if self._bar is not None and self._task is not None:
+                self._bar.update(self._task, description=what)
+
+    def stage(self, description: str, total: int | None, follow: str | None = None, line: bool = True) -> None:
+        """Start a bar for ``total`` steps (None: unknown, no ETA); the previous one is completed.
+        ``follow``: the library's reports of this work set the count done. Piped, the stage is a
+        line of its own unless ``line`` is False (then the heartbeat names it)."""
+        if self.quiet:
+            return
+        with self._lock:
+            self._what, self._since = description, time.monotonic()
+            self._follow, self._follow_total = follow, total
+            if self._bar is not None:
+                if self._placeholder:
+                    self._bar.remove_task(self._task)
+                    self._placeholder = False
+                else:
+                    self._finish_stage()
+                self._task = self._bar.add_task(description, total=total)
+            elif line:
+                self._print(description + (f" ({total} steps)" if total else ""))
 
     def step(self, line: str | None = None, *, completed: int | None = None, advance: int = 0,
              total: int | None = None) -> None:
@@ -226,13 +319,11 @@ class ProgressDisplay:
         ``completed`` steps or move it on by ``advance`` (and its length to ``total``, once known)."""
         if self.quiet:
             return
-        if self._bar is None:
+        with self._lock:
             if line is not None:
-                self._console.print(line, markup=False, highlight=False, emoji=False, soft_wrap=True)
-            return
-        if line is not None:
-            self._bar.console.print(line, markup=False, highlight=False, emoji=False)
-        if self._task is not None:
+                self._print(line)
+            if self._bar is None or self._task is None:
+                return
             total = total if total is not None else self._current().total
             if completed is not None and total is not None and completed > total:
                 total = completed  # a limit that was an estimate

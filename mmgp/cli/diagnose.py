@@ -23,25 +23,33 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
              quiet: bool = quiet_option()):
     """Locate the sim-vs-real mismatch, name the missing physics, fit it, show the held-out gain."""
     check_log_headers([log])
-    from ..data.outputs import atomic_output_dir
-    from ..config import load_settings
-    from ..diagnosis import Diagnoser
-
     try:
-        _check_device(device)
-        diagnoser = Diagnoser(**load_settings(config, "diagnose", Diagnoser))
-        robot_model = _robot_for(log, robot, urdf)
-        if robot_model is None:
-            raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
-                             "(or name one in the log's metadata)", file=log)
-        with (command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(log, urdf, config)) as tmp,
-              ProgressDisplay(quiet) as shown):
-            shown.stage("diagnose", None)  # no stages reported yet: elapsed time only
-            diagnoser.fit(log, robot_model).report(tmp)
-            info = diagnoser.result_.info
-            line = thinning_line(info["n_samples"], info["n_samples_in_log"], f"max_samples {diagnoser.max_samples}")
-            if line:
-                shown.step(line)
+        with ProgressDisplay(quiet) as shown:
+            shown.waiting("diagnose: loading the libraries and the robot")  # the imports take seconds
+            from ..data.outputs import atomic_output_dir
+            from ..config import load_settings
+            from ..diagnosis import Diagnoser
+            from ..diagnosis.pipeline import STAGES
+
+            _check_device(device)
+            diagnoser = Diagnoser(**load_settings(config, "diagnose", Diagnoser))
+            robot_model = _robot_for(log, robot, urdf)
+            if robot_model is None:
+                raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
+                                 "(or name one in the log's metadata)", file=log)
+            with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(log, urdf, config)) as tmp:
+                # the diagnosis's stages and the report's writing: the count follows the library's reports
+                shown.stage("diagnose", len(STAGES) + 1, follow="diagnosis")
+                diagnoser.fit(log, robot_model)
+                shown.step(f"diagnose: writing the report [{len(STAGES) + 1}/{len(STAGES) + 1}]",
+                           completed=len(STAGES))
+                diagnoser.report(tmp)
+                shown.step(completed=len(STAGES) + 1)
+                info = diagnoser.result_.info
+                line = thinning_line(info["n_samples"], info["n_samples_in_log"],
+                                     f"max_samples {diagnoser.max_samples}")
+                if line:
+                    shown.step(line)
     except InputError as exc:
         _fail(exc)
     report = out / "report.md"

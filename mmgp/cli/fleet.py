@@ -11,8 +11,9 @@ from .common import (ProgressDisplay, _fail, _given, app, force_option, logs_arg
                      robot_option, urdf_option)
 
 
-def _progress(shown: ProgressDisplay):
-    shown.stage("fleet: logs", None)  # the count is known when the first log is back
+def _progress(shown: ProgressDisplay, total: int):
+    # no line of its own when piped: a bad log time found before the first log stays one error line
+    shown.stage("fleet: logs", total, line=False)
 
     def step(done: int, total: int, outcome: dict) -> None:
         what = f"error: {outcome['error']}" if outcome["error"] else f"{len(outcome['findings'])} finding(s)"
@@ -61,19 +62,32 @@ def fleet(logs: List[Path] = logs_argument("Log files, or folders of logs (*.par
           quiet: bool = quiet_option()):
     """Diagnose (and with --train train on) every log as a Ray task; write one table (DIR/fleet.parquet),
     trend plots (DIR/trends/), drift flags (DIR/drift.json) and DIR/report.html."""
-    from ..data.outputs import atomic_output_dir
-    from ..fleet import Fleet
-    from ..fleet.engine import RayMissingError
-
-    runner = Fleet(robot=robot, urdf=urdf, train=train, engine="serial" if serial else "ray", address=address,
-                   workers=workers, baseline=baseline)
+    settings = dict(robot=robot, urdf=urdf, train=train, engine="serial" if serial else "ray", address=address,
+                    workers=workers, baseline=baseline)
     try:
-        with atomic_output_dir(out, force=force, inputs=_given(*logs)) as tmp, ProgressDisplay(quiet) as shown:
-            runner.fit(logs, progress=_progress(shown))
-            runner.write(tmp)
+        with ProgressDisplay(quiet) as shown:
+            shown.waiting("fleet: loading the libraries")  # the imports take seconds
+            runner, missing = _run(shown, logs, out, force, settings)
     except InputError as exc:
         _fail(exc)
-    except RayMissingError as exc:
-        typer.echo(f"error: {exc}", err=True)
+    if missing is not None:
+        typer.echo(f"error: {missing}", err=True)
         raise typer.Exit(1)
     typer.echo(_report(runner, out))
+
+
+def _run(shown: ProgressDisplay, logs: List[Path], out: Path, force: bool, settings: dict):
+    """The fleet run and its outputs; (the Fleet, None), or (it, the error) when Ray is missing."""
+    from ..data.outputs import atomic_output_dir
+    from ..fleet import Fleet, expand_logs
+    from ..fleet.engine import RayMissingError
+
+    runner = Fleet(**settings)
+    try:
+        with atomic_output_dir(out, force=force, inputs=_given(*logs)) as tmp:
+            runner.fit(logs, progress=_progress(shown, len(expand_logs(logs))))
+            shown.stage("fleet: writing the table, trends, drift flags and report", None)
+            runner.write(tmp)
+    except RayMissingError as exc:
+        return runner, exc
+    return runner, None

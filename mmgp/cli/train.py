@@ -135,18 +135,22 @@ def train(logs: List[Path] = logs_argument(),
           quiet: bool = quiet_option()):
     """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
     check_log_headers(logs)
-    from ..config import load_settings
-    from ..data.outputs import atomic_output_dir
-    from ..estimator import MultimodalGP
-
     try:
-        settings = load_settings(config, "train", MultimodalGP, n_modes=_modes(modes), disturbance=disturbance,
-                                 robot=_robot_option(robot, urdf), device=device, seed=seed)
-        with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(*logs, config)) as tmp, ProgressDisplay(quiet) as shown:
-            model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
-            model.fit(logs)
-            _step_thinning(shown, model.report_.get("thinning"))
-            _write_training_outputs(tmp, model)
+        with ProgressDisplay(quiet) as shown:
+            shown.waiting("train: loading the libraries")  # the imports take seconds
+            from ..config import load_settings
+            from ..data.outputs import atomic_output_dir
+            from ..estimator import MultimodalGP
+
+            settings = load_settings(config, "train", MultimodalGP, n_modes=_modes(modes), disturbance=disturbance,
+                                     robot=_robot_option(robot, urdf), device=device, seed=seed)
+            with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(*logs, config)) as tmp:
+                model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
+                shown.stage(f"train: {len(logs)} log(s)", None)
+                model.fit(logs)
+                _step_thinning(shown, model.report_.get("thinning"))
+                shown.stage("train: writing the model, labels, plots and report", None)
+                _write_training_outputs(tmp, model)
     except InputError as exc:
         _fail(exc)
     typer.echo(f"{_summary(model)} Wrote {out}/labels.parquet, report.json, model, plots, report.html.")

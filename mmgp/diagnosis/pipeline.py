@@ -56,6 +56,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, clone
 
 from ..errors import InputError
+from ..progress import report
 from . import stages as st
 from .fitting import effect_findings, fit_physics
 from .modes import near_switches
@@ -63,6 +64,18 @@ from .reidentify import consistent_refit, model_torque, reidentify
 from .result import DiagnosisResult, disturbance_finding, mode_effect_findings, mode_switch_finding
 from .selection import FoldGrams, ForwardCVSelector, extend_nested, prune
 from .separation import SEPARATION_METHODS, runs, spans_of
+
+
+#: the stages of a diagnosis, in order, as its progress reports name them (``work="diagnosis"``,
+#: ``done`` = the stage's index, ``total`` = their number); a stage a log does not need is skipped
+STAGES = ("reading the log", "estimating derivatives, building the effect library",
+          "multimodal learner (pushes)", "fitting the effects, re-identifying the rigid body", "separating pushes",
+          "selecting effects", "mode switch", "selecting effects again, with the modes",
+          "held-out errors per stage", "GP on what the physics leaves")
+
+
+def _stage(name: str) -> None:
+    report(f"diagnosis: {name}", work="diagnosis", done=STAGES.index(name), total=len(STAGES))
 
 
 class _Laps:
@@ -197,6 +210,7 @@ class Diagnoser(BaseEstimator):
         from threadpoolctl import threadpool_limits
 
         self._check()
+        _stage("reading the log")
         log = _read(log, robot)
         # the linear algebra here is many small products; multi-threaded BLAS only adds contention
         # (on a busy 2-core machine a 21000 x 90 Gram took 1-3 s threaded and 0.03 s on one thread)
@@ -221,6 +235,7 @@ class Diagnoser(BaseEstimator):
 
     def _diagnose(self, log, robot) -> DiagnosisResult:
         laps = _Laps()
+        _stage("estimating derivatives, building the effect library")
         log, n_full, smear_s = st.prepare_log(log, self._differentiator(), self.max_samples)
         prob = st.build_problem(log, robot, n_full, smear_s, effects=self.effects, payload_links=self.payload_links,
                                 n_folds=self.n_folds, **self._settings("sign_noise_factor", "lowpass", "rest_factor"))
@@ -228,19 +243,23 @@ class Diagnoser(BaseEstimator):
         push_kw = self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed")
         # the learner's push flags are where the robust fit starts: with many long pushes a fit
         # that starts from least squares can settle where the pushes dragged it
+        _stage("multimodal learner (pushes)")
         em = st.run_learner(prob, self.em_modes, max_points=self.em_points, seed=self.seed) \
             if self.separate != "none" else None
         init = None if em is None else 1.0 - em["p_disturbed"]
+        _stage("fitting the effects, re-identifying the rigid body")
         lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2, init=init)
         lib_rest = st.fit_library(st.without_body(prob), prob.ctx, np.ones(len(prob.t), bool), relinearise=2,
                                   init=init)
         start, reid = reidentify(prob, lib, lib_rest, alpha=self.alpha, min_gain=self.reid_min_gain)
         laps("reidentify_s")
+        _stage("separating pushes")
         pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, em=em, **push_kw)
         use = ~pushes.disturbed
         if pushes.disturbed.any():
             lib = st.fit_library(prob, lib.ctx, use, init=None if em is None else 1.0 - em["p_disturbed"])
         laps("separate_s")
+        _stage("selecting effects")
         phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
         laps("select_s")
         ms, pushes = self._mode_switch(prob, phys, pushes, laps)
@@ -249,6 +268,7 @@ class Diagnoser(BaseEstimator):
             # (samples within a filter memory of a switch mix both modes: left out)
             near = near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)
             (prob, body), use = st.with_modes(prob, ms), ~pushes.disturbed & ~near
+            _stage("selecting effects again, with the modes")
             phys, selector, dropped, rb_ev = self._select(prob, st.fit_library(prob, phys.ctx, use), use, start + body)
             if pushes.disturbed.any():
                 pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
@@ -296,9 +316,11 @@ class Diagnoser(BaseEstimator):
         return phys, selector, dropped, rb_ev
 
     def _stage_errors(self, prob, phys, use, denom, laps) -> dict:
+        _stage("held-out errors per stage")
         fit = st.stage_errors(prob, phys, use, denom)
         laps("fit_s")
         if self.gp:
+            _stage("GP on what the physics leaves")
             fit["with_physics_and_gp"] = st.gp_stage_errors(prob, phys, use, denom, points=self.gp_points,
                                                              hyper_points=self.gp_hyper_points, n_iter=self.gp_iter,
                                                              seed=self.seed)
@@ -316,6 +338,7 @@ class Diagnoser(BaseEstimator):
         cands = [(e, phys.A[:, :, [index[a] for a in e.atoms()]]) for e in prob.library if e.switchable]
         if not (self.modes and cands):
             return None, pushes
+        _stage("mode switch")
         # the modes the multimodal learner (the inference `mmgp train` makes) sees in what the
         # physics leaves: where the switching fits start, and the gate of the push re-scan
         em = st.run_learner(prob, max(2, self.em_modes), max_points=self.em_points, seed=self.seed,

@@ -45,6 +45,7 @@ from ..data.folds import default_gap, time_block_folds
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, Standardiser
 from ..models.mstep import ModeFitter, evenly_spaced
+from ..progress import report
 from .metrics import HELDOUT_LABELS, normalised_mse
 
 __all__ = ["heldout_score", "format_heldout"]
@@ -62,6 +63,7 @@ def heldout_score(model, *, n_folds: int = 5, max_support: int = 2000, gap: int 
     {model, rigid_body (or None), mean: (n,) lists, or None when nothing could be scored},
     ``mean_predictor`` and ``seconds``."""
     t0 = time.perf_counter()
+    report(f"held-out score: {n_folds} time blocks")
     feats = model.features_
     tau = np.concatenate([lg.tau for lg in model.logs_])
     T, n = tau.shape

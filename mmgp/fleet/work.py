@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ..data.times import EXAMPLE, START_TIME_KEY, parse_start_time
 from ..errors import InputError
+from ..progress import report
 
 #: the metadata key fleets before contract 1.2 read (ISO 8601, a time without zone taken as UTC,
 #: or Unix seconds); still read after ``start_time`` so that logs written for them keep their times
@@ -143,9 +144,11 @@ def _process(path: Path, job: dict, out: dict) -> None:
         raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                          "(or name one in the log's metadata)", file=path)
     out["robot"] = robot_label(robot, job.get("robot"))
+    report(f"{out['log']}: diagnosis")
     log = read_log(path, n_joints=robot.n_joints, joint_names=robot.joint_names)
     out["findings"], out["diagnosis"] = diagnose_log(log, robot, job.get("diagnosis_settings"))
     if job.get("train"):
+        report(f"{out['log']}: training")
         out["training"] = train_log(path, robot, job.get("train_settings"))
 
 

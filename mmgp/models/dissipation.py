@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..physics.context import smooth_sign_scale
+from ..progress import report
 from ..gp.exact import ExactGP
 from .mstep import evenly_spaced
 
@@ -190,6 +191,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
     if first is None:
         first = make_sem().fit(X, Y, **fit_kw)
     fits = [first]
+    report("friction check: does the learnt friction dissipate?")
     checks = [energy_check(first, X, basis, rev)]
     while (first.disturbance and len(first.trace_) and not checks[-1]["physical"]
            and len(fits) <= restarts):
@@ -198,6 +200,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
         if not flip.any():
             break
         states = last.labels_ + last.n_modes * (last.disturbed_ ^ flip)
+        report(f"friction check: refit {len(fits)} of at most {restarts}, labels swapped where friction injects energy")
         fits.append(make_sem().fit(X, Y, init_states=states, **fit_kw))
         checks.append(energy_check(fits[-1], X, basis, rev))
     evidence = [float(m.log_marginal_) for m in fits]

@@ -12,6 +12,7 @@ from ..data.channels import dead_banded
 from ..data.differentiation import SavitzkyGolay, complete_derivatives, downsample
 from ..data.logs import RobotLog, read_log
 from ..errors import InputError
+from ..progress import report
 from ..physics.context import rest_weight
 
 
@@ -21,7 +22,8 @@ def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_wind
     ``diff_window_s`` or per joint by cross-validation) and downsample it to ``rate_hz``."""
     logs = []
     n_ref = None
-    for src in sources:
+    for i, src in enumerate(sources):
+        report(f"reading and differentiating log {i + 1} of {len(sources)}")
         if isinstance(src, RobotLog):
             log = src
             if robot is not None:

@@ -59,6 +59,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ..progress import report
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import chain_matrix, e_step, longest_runs_s, merge_short_runs, runs_shorter_than
@@ -207,6 +208,7 @@ class MultimodalSEM:
         """One GP on every sample, by :func:`mmgp.gp.sparse.make_gp`, hyperparameters by its own
         procedure (``objective`` on ``fit_points`` random samples)."""
         t0 = time.perf_counter()
+        report(f"one GP on all {len(Y)} samples")
         fitter, _ = self._prepare(X, Y, t, starts, basis)
         T, n = fitter.Y.shape
         self.labels_ = np.zeros(T, int)
@@ -280,6 +282,8 @@ class MultimodalSEM:
                               np.bincount(states % K, minlength=K).tolist(), time.perf_counter() - ts)
             if self.progress is not None:
                 self.progress(rec)
+            else:  # nobody takes the sweeps: a stage report each (the diagnosis's learner)
+                report(f"EM sweep {sweep}: {changed:.1%} of the labels changed ({rec.seconds:.1f} s)")
             if monitor.update(rec, step.probs):
                 break
             fleeting = sweep + 1 >= self.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
@@ -347,12 +351,16 @@ class MultimodalSEM:
         Y = fitter.Y
         T, n = Y.shape
         K = self.n_modes
+        report(f"EM start: one GP on all {T} samples")
         mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True)
         # Trimming is against pushes; without a disturbance mode every sample belongs to a mode.
         for frac in (self.start_trim if self.disturbance else ()):
+            report(f"EM start: GP refit on the {frac:.0%} most typical samples")
             z = (np.abs(Y - mean) / np.sqrt(var)).max(1)
             keep = np.sort(np.argsort(z, kind="stable")[:int(math.ceil(frac * T))])
             mean, var, gp, _, _ = fitter.predictive(keep, gp.hyper_, True)
+        if K > 1:
+            report(f"EM start: {K} initial modes from the smoothed residuals")
         modes = self._initial_modes(fitter, Y - mean) if K > 1 else np.zeros(T, int)
         states = modes.copy()
         if self.disturbance:
@@ -392,6 +400,7 @@ class MultimodalSEM:
         stretches shorter than ``min_push_len`` samples are unflagged (p_disturbed 0), stretches
         of one mode shorter than ``min_mode_len`` samples take a neighbouring stretch's mode."""
         K, T, n = self.n_modes, *fitter.Y.shape
+        report("EM end: labels and the final GPs")
         post = monitor.posterior()
         p_mode = np.clip(post[:, :K] + (post[:, K:] if self.disturbance else 0.0), 0.0, 1.0)
         p_dist = np.clip(post[:, K:].sum(1), 0.0, 1.0) if self.disturbance else np.zeros(T)
@@ -545,6 +554,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     scores, longest, models = {}, {}, {}
     best = None
     for K in sorted(candidates):
+        report(f"mode selection: EM with {K} mode(s)")
         m = MultimodalSEM(n_modes=K, abandon_short_modes=K > 1, **kw).fit(X, Y, t=t, starts=starts, basis=basis,
                                                                           rest=rest, muted=muted, sweeps=True)
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
