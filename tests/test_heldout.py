@@ -14,28 +14,18 @@ from typer.testing import CliRunner
 from mmgp import MultimodalGP
 from mmgp.data.differentiation import SavitzkyGolay
 from mmgp.data.folds import default_gap, time_block_folds
+from test_estimator import double_pendulum_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
 LOG = ROOT / "mmgp/resources/replica/replica_log.parquet"
-NOISE = 0.02                      # N*m, the synthetic log's torque noise
+NOISE = 0.02                      # N*m, the synthetic log's torque noise (test_estimator's log)
 VISCOUS = 0.05                    # N*m*s/rad, its viscous friction (not in the URDF)
 
 
 def double_pendulum_log(T=1000, rate=50.0, seed=0):
     """A 2-DOF log at 50 Hz: the URDF's rigid body with a 0.4 kg point mass at the tip link,
-    viscous friction and Gaussian noise of NOISE N*m; exact dq and ddq (nothing estimated)."""
-    from mmgp.physics.robot import RobotModel
-
-    robot = RobotModel.from_name("double_pendulum")
-    t = np.arange(T) / rate
-    w = np.array([[1.1, 0.7], [1.9, 1.3]])
-    q = np.stack([0.8 * np.sin(w[0, j] * t) + 0.3 * np.sin(w[1, j] * t) for j in range(2)], 1)
-    dq = np.stack([0.8 * w[0, j] * np.cos(w[0, j] * t) + 0.3 * w[1, j] * np.cos(w[1, j] * t) for j in range(2)], 1)
-    ddq = np.stack([-0.8 * w[0, j] ** 2 * np.sin(w[0, j] * t) - 0.3 * w[1, j] ** 2 * np.sin(w[1, j] * t)
-                    for j in range(2)], 1)
-    heavy = robot.add_payload(robot.body_names[-1], 0.4, [0.0, 0.0, 0.1])
-    tau = heavy.rnea(q, dq, ddq) + VISCOUS * dq + NOISE * np.random.default_rng(seed).normal(size=(T, 2))
-    return robot, dict(t=t, q=q, dq=dq, ddq=ddq, tau=tau)
+    viscous friction VISCOUS and Gaussian noise of NOISE N*m; exact dq and ddq (nothing estimated)."""
+    return double_pendulum_arrays(T=T, rate=rate, seed=seed)
 
 
 @pytest.fixture(scope="module")
