@@ -330,6 +330,7 @@ class MultimodalGP(BaseEstimator):
         from .evaluation.heldout import heldout_score
         from .models.dissipation import fit_dissipative
         from .models.sem import MultimodalSEM, select_n_modes
+        from .physics.plausibility import fit_warnings
 
         t0 = time.perf_counter()
         self._validate()
@@ -372,6 +373,8 @@ class MultimodalGP(BaseEstimator):
         self.report_.update(windows_shortened_s=shortened, thinning=thinning, dissipation=dissipation,
                             heldout=heldout_score(self))
         self.report_["timings"].update(heldout_s=self.report_["heldout"]["seconds"], total_s=time.perf_counter() - t0)
+        held = self.report_["heldout"]["nmse"]
+        self.report_["warnings"] += fit_warnings(self.joint_names_, held["rigid_body"], held["model"])
         return self
 
     def _set_sem(self, sem) -> None:

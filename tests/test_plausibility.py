@@ -233,7 +233,10 @@ def panda_files(panda, urdf_limits, tmp_path_factory):
     cfg.write_text("train:\n  semiparametric: none\n  mean_basis: none\n"
                    "diagnose:\n  gp: false\n  plots: false\n  modes: false\n  separate: none\n")
     out = {"q": q}
-    for name, qq, tt in (("rad", q, tau), ("deg", np.degrees(q), tau), ("swapped", q[:, perm], tau[:, perm])):
+    noise = np.random.default_rng(5).normal(scale=0.02, size=tau.shape)
+    out["tau"] = tau
+    for name, qq, tt in (("rad", q, tau), ("deg", np.degrees(q), tau), ("swapped", q[:, perm], tau[:, perm]),
+                         ("noise", q, noise)):
         log = write_log(d / f"{name}.parquet", t, qq, tt, joint_names=NAMES)
         runs = {}
         for cmd, extra in (("train", ["--modes", "1", "--no-disturbance"]), ("diagnose", []),
@@ -251,19 +254,26 @@ def panda_files(panda, urdf_limits, tmp_path_factory):
     return out
 
 
+def _is_fit_warning(w: str) -> bool:
+    """A warning of a command's held-out fit (its own figures, after the log's checks)."""
+    return w.startswith("the nominal model predicts") or "the held-out torque better than its mean" in w
+
+
 def _all_same(runs):
-    """The log's warnings, asserting that each command wrote and printed them alike (the
-    diagnosis's own checks of its answer come after them)."""
+    """The log's warnings, asserting that each command wrote and printed them alike and that they
+    come first (each command's checks of its own held-out fit come after them)."""
     (train, train_printed), (diag, diag_printed), (comp, comp_printed) = (runs[c] for c in
                                                                          ("train", "diagnose", "compare"))
-    assert train == train_printed == comp == comp_printed
-    assert diag == diag_printed and diag[:len(train)] == train
-    return train
+    assert train == train_printed and comp == comp_printed and diag == diag_printed
+    logs = [[w for w in ws if not _is_fit_warning(w)] for ws in (train, comp)]
+    assert logs[0] == logs[1] == train[:len(logs[0])] == comp[:len(logs[0])] == diag[:len(logs[0])]
+    return logs[0]
 
 
 def test_an_unmodified_log_gets_no_log_warning(panda_files):
     runs = panda_files["rad"]
     assert _all_same(runs) == []
+    assert runs["train"][0] == runs["compare"][0] == []     # nor a fit warning
     assert not [w for w in runs["diagnose"][0] if "degrees" in w or "joint limits" in w]
 
 
@@ -311,3 +321,35 @@ def test_a_robotless_demo_log_in_degrees_is_told_by_train(tmp_path):
             "degrees? (the log must hold radians)")
     assert json.loads((tmp_path / "m" / "report.json").read_text())["warnings"] == [want]
     assert f"warning: {want}" in res.stderr
+
+
+def test_fit_warnings_against_the_line_of_the_mean():
+    """Held-out nMSE 1 is the torque's own mean: the nominal model beyond it on most joints is
+    told (as another robot's model, or as a URDF far from the robot when the learnt model predicts
+    those joints), a joint no model predicts is told, a learnt model short of samples is not."""
+    from mmgp.physics.plausibility import fit_warnings as log_fit_warnings
+
+    names = ["a", "b", "c"]
+    assert log_fit_warnings(names, [1.2, 0.9, 0.5], [0.1, 0.1, 0.1]) == []          # 1 of 3 is not most
+    w = log_fit_warnings(names, [1.2, 3.0, 0.5], [0.1, 0.2, 0.1])
+    assert w == ["the nominal model predicts the torque worse than its mean on 2 of 3 joints (held-out nMSE up to 3), "
+                 "and the learnt model predicts them (nMSE up to 0.2): the URDF is far from this robot (its inertial "
+                 "parameters, friction or a payload), or it is another robot's model"]
+    w = log_fit_warnings(names, [1.2, 3.0, 0.5], [0.1, 1.5, 0.1])
+    assert len(w) == 2 and w[0].endswith("a wrong robot model, joint order or units, or a URDF far from the robot")
+    assert w[1].startswith("b: neither the nominal model (nMSE 3) nor the learnt model (nMSE 1.5) predicts")
+    assert log_fit_warnings(names, [0.01, 0.02, 0.5], [1.3, 0.1, 0.1]) == []     # the nominal predicts joint a
+    assert log_fit_warnings(names, None, [1.3, 0.1, None])[0].startswith("a: the learnt model (nMSE 1.3) does not")
+
+
+def test_a_log_of_noise_is_told_by_every_command(panda_files):
+    """White noise of 0.02 N*m for torque: the nominal model's held-out error is beyond the
+    torque's mean by about the RNEA torque's (Pinocchio's) variance over the noise's, above 5 on
+    every joint, and every command says so."""
+    spread = panda_files["tau"].std(0)
+    assert (1 + (spread / 0.02) ** 2 > 5).all()
+    for cmd in ("train", "diagnose", "compare"):
+        warnings, printed = panda_files["noise"][cmd]
+        assert warnings == printed
+        nominal = [w for w in warnings if w.startswith("the nominal model predicts")]
+        assert len(nominal) == 1 and "on 7 of 7 joints" in nominal[0], (cmd, warnings)

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..physics.plausibility import nominal_fit_warning
+
 
 def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
     """Warnings from the held-out errors per stage, and the joints whose findings they withhold:
@@ -28,14 +30,11 @@ def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
     than the nominal model is told. A nominal model worse than the mean on most
     joints is told, but withholds nothing by itself: a real arm's URDF can be that far off and
     the re-identified body right (the Staubli TX40: nominal 0.77-1.45, with physics 0.003-0.007)."""
-    out, bad = [], set()
+    bad = set()
     nom = fit.get("nominal", {}).get("nmse", {})
-    worse = [j for j in names if nom.get(j, 0.0) > 1.0]
-    if len(worse) > len(names) / 2:
-        out.append(f"the nominal model predicts the torque worse than its mean on {len(worse)} of {len(names)} "
-                   f"joints (held-out nMSE up to {max(nom[j] for j in worse):.3g}): a wrong robot model, joint "
-                   "order or units, or a URDF far from the robot")
     phys = fit.get("with_physics", {}).get("nmse", {})
+    out = nominal_fit_warning(names, [nom.get(j, 0.0) for j in names],
+                              [phys.get(j) for j in names] if phys else None, "the model with the found physics")
     for j in names:
         if phys.get(j, 0.0) > 1.0:
             out.append(f"{j}: even with the found physics the model predicts the torque worse than its mean "

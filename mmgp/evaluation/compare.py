@@ -39,7 +39,7 @@ from ..data.logs import RobotLog
 from ..errors import InputError
 from ..data.outputs import atomic_write_bytes, jsonable
 from ..data.folds import default_gap, spread_subset, time_block_folds
-from ..physics.plausibility import log_warnings
+from ..physics.plausibility import fit_warnings, log_warnings
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
 
@@ -128,7 +128,9 @@ def _compare(log: RobotLog, robot, *, n_folds, gap, max_train, seed, gp_options,
                                                opts=opts, hyper_fit=hyper_fit, block_s=block_s,
                                                say=progress or (lambda m: None))
     out = _result(log, robot, tau, pred, folds, n_folds=n_folds, gap=gap, max_train=max_train, seed=seed)
-    out["warnings"] = log_warnings(log, out["joint_names"], robot)
+    learnt = out["nmse"]["rigid_body_gp" if robot is not None else "gp"]
+    out["warnings"] = log_warnings(log, out["joint_names"], robot) + fit_warnings(
+        out["joint_names"], out["nmse"].get("rigid_body"), learnt, "the rigid body + GP" if robot is not None else "the GP")
     out.update(folds=fold_info, gp_options=dict(opts), hyper_fit=hyper_fit, block_s=float(block_s),
                timings={"fit_predict_s": t_fit, "total_s": time.perf_counter() - t0})
     return out

@@ -13,6 +13,13 @@ robot, joints in another order, or units), positions that span more than two tur
 the log must hold radians; no model needed), logged velocities that are the time derivative of
 the logged positions (columns swapped, mixed units, a log of noise). A check that only informs:
 a torque channel that reads one exact value on most samples (``mmgp.data.channels``).
+
+Checks of the held-out fit (:func:`fit_warnings`: each command passes its own held-out
+normalised MSE per joint, where 1 is the torque's own mean; they come after the log's checks):
+a nominal model worse than the mean on most joints (another robot's model, or a URDF far from the
+robot: said apart by whether the command's learnt model predicts those joints), and a joint
+whose torque not even the learnt model predicts better than its mean (a log of noise, a wrong
+column, or a joint too still for its torque to rise above the sensor's noise).
 """
 from __future__ import annotations
 
@@ -115,3 +122,50 @@ def log_warnings(logs, names: list, robot=None) -> list[str]:
     """All the warnings of :func:`log_checks`, in its order."""
     suspect, notes = log_checks(logs, names, robot)
     return suspect + notes
+
+
+def nominal_fit_warning(names: list, nominal, learnt=None, learnt_label: str = "the learnt model") -> list[str]:
+    """One warning when the nominal model predicts the held-out torque worse than its mean
+    (normalised MSE ``nominal`` (n,) > 1) on most joints, else none. ``learnt`` (n,): the
+    command's own model's figure; where it predicts every such joint (< 1) the URDF is far from
+    the robot rather than another robot's model, and the warning says so."""
+    worse = [k for k, v in enumerate(nominal) if v is not None and v > 1.0]
+    if len(worse) <= len(names) / 2:
+        return []
+    head = (f"the nominal model predicts the torque worse than its mean on {len(worse)} of {len(names)} joints "
+            f"(held-out nMSE up to {max(nominal[k] for k in worse):.3g})")
+    if learnt is not None and all(learnt[k] is not None and learnt[k] < 1.0 for k in worse):
+        return [f"{head}, and {learnt_label} predicts them (nMSE up to {max(learnt[k] for k in worse):.3g}): the "
+                "URDF is far from this robot (its inertial parameters, friction or a payload), or it is another "
+                "robot's model"]
+    return [f"{head}: a wrong robot model, joint order or units, or a URDF far from the robot"]
+
+
+def unpredictable_joints(learnt, nominal=None) -> list[int]:
+    """Joints whose torque no model predicts: held-out normalised MSE ``learnt`` (n,) above 1
+    (worse than the torque's own mean) and ``nominal`` (n,) too, where given. A learnt model
+    worse than a nominal one that predicts is short of samples, not the log wrong."""
+    return [k for k, v in enumerate(learnt) if v is not None and v > 1.0
+            and (nominal is None or nominal[k] is None or nominal[k] > 1.0)]
+
+
+def unpredictable_warning(name: str, nmse: float, learnt_label: str = "the learnt model",
+                          nominal: float | None = None) -> str:
+    """The warning for a joint whose torque neither ``learnt_label`` (held-out normalised MSE
+    ``nmse``) nor the nominal model (``nominal``, if any) predicts better than its mean."""
+    who = (f"neither the nominal model (nMSE {nominal:.3g}) nor {learnt_label} (nMSE {nmse:.3g}) predicts"
+           if nominal is not None else f"{learnt_label} (nMSE {nmse:.3g}) does not predict")
+    return (f"{name}: {who} the held-out torque better than its mean: the torque there is not a function of the "
+            "logged state (a log of noise, a wrong column, or a joint too still for its torque to rise above the "
+            "sensor's noise)")
+
+
+def fit_warnings(names: list, nominal=None, learnt=None, learnt_label: str = "the learnt model") -> list[str]:
+    """The held-out fit's warnings of a command (module docstring): ``nominal`` (n,) and
+    ``learnt`` (n,) held-out normalised MSE per joint of the nominal rigid body and of the
+    command's model (either None when absent)."""
+    out = nominal_fit_warning(names, nominal, learnt, learnt_label) if nominal is not None else []
+    if learnt is not None:
+        out += [unpredictable_warning(names[k], learnt[k], learnt_label, None if nominal is None else nominal[k])
+                for k in unpredictable_joints(learnt, nominal)]
+    return out
