@@ -25,7 +25,8 @@ SETTINGS = {("train", "--modes"): ("train", "n_modes"),
             ("train", "--disturbance"): ("train", "disturbance"),
             ("train", "--device"): ("train", "device"),
             ("train", "--seed"): ("train", "seed"),
-            ("export", "--max-support"): ("export", "max_support")}
+            ("export", "--max-support"): ("export", "max_support"),
+            ("compare", "--max-train"): ("compare", "max_train")}
 
 
 def _commands():
@@ -107,7 +108,7 @@ def test_settings_options_cover_every_option_left_to_a_setting():
     """An option of a --config command that defaults to None but names a setting of its section
     shows the shipped value: the table above lists every such option whose shipped value is not null."""
     shipped = _shipped()
-    sections = {"train": "train", "export": "export", "diagnose": "diagnose"}
+    sections = {"train": "train", "export": "export", "diagnose": "diagnose", "compare": "compare"}
     for path, cmd in COMMANDS:
         section = sections.get(path[-1])
         if section is None:
@@ -124,7 +125,7 @@ def test_config_show_default_has_every_command_section():
     tops = re.findall(r"^(\w+):", res.output, flags=re.M)
     assert len(tops) == len(set(tops)), f"a section twice: {tops}"   # YAML would keep the last silently
     with_config = {p[-1] for p, c in COMMANDS if any("--config" in getattr(q, "opts", ()) for q in c.params)}
-    assert with_config == {"train", "export", "diagnose"}
+    assert with_config == {"train", "export", "diagnose", "compare"}
     assert set(yaml.safe_load(res.output)) == with_config
 
 

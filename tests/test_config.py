@@ -83,6 +83,11 @@ def test_shipped_default_settings_are_the_defaults():
     sig = inspect.signature(Diagnoser.__init__).parameters
     objects = ("self", "effects", "selector", "differentiator")     # Python objects, not settings
     assert sections["diagnose"] == {k: p.default for k, p in sig.items() if k not in objects}
-    assert set(sections) == {"train", "export", "diagnose"}
+    from mmgp.evaluation.compare import compare
+
+    sig = inspect.signature(compare).parameters
+    objects = ("log", "robot", "gp_options", "progress")            # the inputs and Python objects
+    assert sections["compare"] == {k: p.default for k, p in sig.items() if k not in objects}
+    assert set(sections) == {"train", "export", "diagnose", "compare"}
     panda = load_settings(ROOT / "configs/panda_modes.yaml", "train", MultimodalGP)
     assert panda == {"n_modes": 2, "disturbance": True, "semiparametric": "residual"}

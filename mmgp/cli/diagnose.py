@@ -9,7 +9,7 @@ import typer
 from ..errors import InputError
 from .common import (DEVICE_HELP, ProgressDisplay, _check_device, _fail, check_log_headers, _given, _robot_for, app, command_numerics,
                      config_option, echo_warnings, force_option, out_dir_option, parameter_default, quiet_option,
-                     robot_option, thinning_line, urdf_option)
+                     robot_option, setting_option, thinning_line, urdf_option)
 
 
 @app.command()
@@ -62,12 +62,15 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
             out: Path = out_dir_option(),
             robot: Optional[str] = robot_option(),
             urdf: Optional[Path] = urdf_option(),
-            max_train: int = typer.Option(1000, "--max-train", min=2, help="Training samples per fold."),
+            config: Optional[Path] = config_option("compare", " (compare's settings)"),
+            max_train: Optional[int] = setting_option("compare", "max_train", "--max-train", min=2,
+                                                      help="Training samples per fold."),
             device: Optional[str] = typer.Option(None, "--device", help=DEVICE_HELP),
             force: bool = force_option(),
             quiet: bool = quiet_option()):
     """Held-out (time-block) normalised MSE per joint: rigid body only, GP only, rigid body + GP."""
     check_log_headers([log])
+    from ..config import load_settings
     from ..evaluation.compare import compare as run_compare, format_compare, write_compare
     from ..data.outputs import atomic_output_dir
     from ..data.logs import read_log
@@ -75,14 +78,14 @@ def compare(log: Path = typer.Argument(..., help="Log to compare models on."),
 
     try:
         _check_device(device)
+        settings = load_settings(config, "compare", run_compare, max_train=max_train)
         robot_model = _robot_for(log, robot, urdf)
         lg = complete_derivatives(read_log(log, n_joints=robot_model.n_joints if robot_model else None,
                                            joint_names=robot_model.joint_names if robot_model else None))
-        with (command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(log, urdf)) as tmp,
+        with (command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(log, urdf, config)) as tmp,
               ProgressDisplay(quiet) as shown):
-            shown.stage("compare: folds", parameter_default(run_compare, "n_folds"))
-            res = run_compare(lg, robot_model, max_train=max_train,
-                              progress=lambda msg: shown.step(msg, advance=1))
+            shown.stage("compare: folds", settings.get("n_folds", parameter_default(run_compare, "n_folds")))
+            res = run_compare(lg, robot_model, **settings, progress=lambda msg: shown.step(msg, advance=1))
             write_compare(res, tmp)
     except InputError as exc:
         _fail(exc)
