@@ -23,7 +23,8 @@ Sets of logs (``--sets``):
   2026-11-27 from a system random source, committed before any tuning) is scored once at the end.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
-``mmgp-noband`` (``rest_band`` off: the default before), ``source`` (today's
+``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
+setting changed, the value read as YAML: ``mmgp[push_floor_z=0]``), ``source`` (today's
 code set as the source: single-site Gibbs, plain LOO objective, exclusion_s 0, no friction input,
 no rigid-body mean), ``gp3sigma`` (one GP, 3-sigma LOO residuals), ``itgp`` (robustgp's
 iteratively trimmed GP, per joint), ``huber`` (scikit-learn's HuberRegressor per joint on the
@@ -361,6 +362,13 @@ def methods_by_name(names, modes_auto: bool) -> dict:
            "mmgp-noband": MmgpMethod({"rest_band": False}, modes_auto),
            "source": MmgpMethod(SOURCE_SETTINGS, modes_auto),
            "gp3sigma": gp3sigma, "itgp": itgp, "huber": huber, "rrp": rrp}
+    for n in names:
+        if n.startswith("mmgp[") and n.endswith("]"):
+            # one default setting changed, e.g. mmgp[push_floor_z=0] (the ablations of bench_rules.py)
+            import yaml
+
+            key, _, value = n[5:-1].partition("=")
+            reg[n] = MmgpMethod({key: yaml.safe_load(value)}, modes_auto)
     unknown = [n for n in names if n not in reg]
     if unknown:
         raise SystemExit(f"unknown methods {unknown}; known: {sorted(reg)}")
