@@ -20,6 +20,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..data.statistics import mad_sd
+
 #: the ``separate`` setting of the Diagnoser: method name -> what it does (as reported)
 SEPARATION_METHODS = {
     "auto": "robust chi-square scan, each span confirmed by MultimodalSEM (p_disturbed > 0.5 in it)",
@@ -93,8 +95,7 @@ def _chi2_statistic(e: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarra
     of valid joints, per sample."""
     n = e.shape[1]
     med = np.array([np.median(e[V[:, j], j]) if V[:, j].any() else 0.0 for j in range(n)])
-    s = np.array([1.4826 * np.median(np.abs(e[V[:, j], j] - med[j])) if V[:, j].any() else 1.0
-                  for j in range(n)]) + 1e-300
+    s = np.array([mad_sd(e[V[:, j], j]) if V[:, j].any() else 1.0 for j in range(n)]) + 1e-300
     return ((((e - med) / s) ** 2) * V).sum(1), V.sum(1)
 
 

@@ -28,7 +28,7 @@ from sklearn.utils.validation import check_is_fitted
 from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets
 from .kernels import rbf_kernel
 from ..threads import threads_for_rows
-from .linalg import DTYPE, LOG_2PI, GPNumericalError, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
+from .linalg import DTYPE, GPNumericalError, gaussian_logpdf, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
 from .objectives import loo_from_inverse
 
 #: kernel matrices of all outputs together up to this many bytes are factorised as one batch
@@ -108,7 +108,7 @@ class StandardisedRBFGP(BaseEstimator):
         Y = self._training_outputs()
         if self._vector_output:
             mean, std = mean[:, None], std[:, None]
-        return float((-0.5 * (LOG_2PI + 2 * np.log(std) + ((Y - mean) / std) ** 2)).sum())
+        return float(gaussian_logpdf(Y, mean, std ** 2).sum())
 
     def _training_outputs(self) -> np.ndarray:
         return self.Ys_.cpu().numpy() * self.y_scaler_.scale_ + self.y_scaler_.mean_

@@ -11,10 +11,18 @@ import math
 import os
 from typing import Iterator
 
+import numpy as np
 import torch
 
 DTYPE = torch.float64
 LOG_2PI = math.log(2 * math.pi)
+
+
+def gaussian_logpdf(y, mean, var):
+    """Elementwise log density of ``y`` under N(``mean``, ``var``): numpy arrays or torch tensors
+    (``var`` decides which log), broadcast together."""
+    log = torch.log if isinstance(var, torch.Tensor) else np.log
+    return -0.5 * (LOG_2PI + log(var) + (y - mean) ** 2 / var)
 
 
 class GPNumericalError(RuntimeError):

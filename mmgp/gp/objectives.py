@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .linalg import LOG_2PI, inverse_from_cholesky, robust_cholesky
+from .linalg import LOG_2PI, gaussian_logpdf, inverse_from_cholesky, robust_cholesky
 
 
 @dataclass(frozen=True)
@@ -37,10 +37,6 @@ def loo_from_inverse(Kinv: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor,
     alpha = (Kinv @ y.unsqueeze(-1)).squeeze(-1)
     diag = Kinv.diagonal(dim1=-2, dim2=-1)
     return y - alpha / diag, 1.0 / diag
-
-
-def gaussian_logpdf(y: torch.Tensor, mean: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
-    return -0.5 * (LOG_2PI + torch.log(var) + (y - mean) ** 2 / var)
 
 
 def loo_log_predictive(K: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -111,7 +107,7 @@ def block_loo_log_predictive(K: torch.Tensor, y: torch.Tensor, idx: np.ndarray, 
     C = torch.cholesky_inverse(Lb)                                            # P_BB^-1
     r = (C @ (alpha[:, it] * vt).unsqueeze(-1)).squeeze(-1)                  # y_B - mean_B
     var = C.diagonal(dim1=-2, dim2=-1)
-    ll = -0.5 * (LOG_2PI + torch.log(var) + r ** 2 / var)
+    ll = gaussian_logpdf(r, 0.0, var)
     return (ll * vt).sum((-1, -2))
 
 

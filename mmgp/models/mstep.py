@@ -15,7 +15,7 @@ from scipy.special import log_ndtr, logsumexp
 
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, default_hyper, optimise_hyper
-from ..gp.linalg import LOG_2PI
+from ..gp.linalg import gaussian_logpdf
 from ..gp.sparse import make_gp
 from ..gp.objectives import leave_block_out
 from ..gp.windowed import windowed_predictive
@@ -270,10 +270,6 @@ class ModeFitter:
         return hyper
 
 
-def _gauss_logpdf(Y, mean, var):
-    return -0.5 * (LOG_2PI + np.log(var) + (Y - mean) ** 2 / var)
-
-
 def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, n_modes: int,
                    disturbance: bool, optimise: bool) -> Emissions:
     """Refit every mode on its undisturbed samples under ``states`` (T,) and score all samples:
@@ -300,7 +296,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         var = var * params.calib[k]
         mus.append(mean)
         vars_.append(var)
-        lu = _gauss_logpdf(Y, mean, var)      # (T, n) per joint, untouched
+        lu = gaussian_logpdf(Y, mean, var)      # (T, n) per joint, untouched
         if fitter.rest is not None:
             centre, half, bvar = fitter.friction_band(gp, coef, support)
             bands.append(half)
@@ -337,8 +333,8 @@ def pushed_logpdf(Y: np.ndarray, mean: np.ndarray, var: np.ndarray, sigma_d: np.
     Sigma_d there is set by the hardest shoves; a proximal or light push, a few predictive
     standard deviations off, then fits "untouched" better than "pushed"."""
     if Y.shape[1] == 1:
-        return _gauss_logpdf(Y, mean, var + sigma_d)
-    parts = [_gauss_logpdf(Y, mean, var + (sigma_d * f if floor is None else np.maximum(sigma_d * f, floor)))
+        return gaussian_logpdf(Y, mean, var + sigma_d)
+    parts = [gaussian_logpdf(Y, mean, var + (sigma_d * f if floor is None else np.maximum(sigma_d * f, floor)))
              for f in PUSH_SCALES]
     return logsumexp(np.stack(parts), 0) - np.log(len(PUSH_SCALES))
 
@@ -400,7 +396,7 @@ def band_logpdf(e: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:
     hi, lo = np.where(right, -b, a), np.where(right, -a, b)
     la, lb = log_ndtr(hi), log_ndtr(lo)
     band = la + np.log1p(-np.exp(np.minimum(lb - la, -1e-300))) - np.log(2.0 * h)
-    return np.where(half < 1e-3 * s, _gauss_logpdf(e, 0.0, var), band)
+    return np.where(half < 1e-3 * s, gaussian_logpdf(e, 0.0, var), band)
 
 
 def at_rest_logpdf(lu: np.ndarray, e: np.ndarray, half: np.ndarray, var: np.ndarray, rest: np.ndarray) -> np.ndarray:

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..data.statistics import mad_sd
+
 HUBER_K = 1.345   # 95% efficiency at the normal
 TUKEY_K = 4.685   # 95% efficiency at the normal
-_MAD = 1.4826     # MAD -> standard deviation at the normal
 _EPS = 1e-12      # floor of a robust scale (N*m): keeps noise-free data finite
 
 
@@ -58,13 +59,12 @@ def _robust_scale(r: np.ndarray, mask: np.ndarray | None, centre: bool) -> np.nd
     """(n,) MAD of each output's residual over its unmasked rows, about the median (``centre``)
     or about zero; 1 for an output without rows."""
     if mask is None:
-        med = np.median(r, 0) if centre else 0.0
-        return _MAD * np.median(np.abs(r - med), 0) + _EPS
+        return mad_sd(r, 0, centre) + _EPS
     out = np.ones(r.shape[1])
     for j in range(r.shape[1]):
         v = r[mask[:, j] > 0, j]
         if v.size:
-            out[j] = _MAD * np.median(np.abs(v - (np.median(v) if centre else 0.0)))
+            out[j] = mad_sd(v, 0, centre)
     return out + _EPS
 
 

@@ -17,6 +17,8 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.stats import norm
 
+from ..data.statistics import mad_sd
+
 # Residuals are clipped at this many standard deviations before averaging: the scan looks for
 # many moderate deviations in a row; a few large ones (a friction reversal's blip, which the
 # shortest-push rule unflags) are the chain's to judge, and must not make a 0.2 s "push".
@@ -62,7 +64,7 @@ def sustained_offset_scan(z: np.ndarray, ok: np.ndarray, window: int, z_max: flo
         if ref[:, j].sum() < 10 * window:
             continue        # too few reference windows on this joint: it cannot be judged
         centre = np.median(avg[ref[:, j], j])
-        spread = 1.4826 * np.median(np.abs(avg[ref[:, j], j] - centre))
+        spread = mad_sd(avg[ref[:, j], j])
         dev[:, j] = np.where(ok[:, j] & (frac[:, j] >= 0.5), np.abs(avg[:, j] - centre) / max(spread, 1e-12), 0.0)
     stat = dev.max(1)
     return stat > z_max, stat

@@ -59,6 +59,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ..data.statistics import mad_sd
 from ..progress import report
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
@@ -369,8 +370,7 @@ class MultimodalSEM:
             for k in range(K):
                 sel = modes == k
                 if sel.any():
-                    dev = np.abs(r[sel] - np.median(r[sel], 0))
-                    z[sel] = dev / (1.4826 * np.median(dev, 0) + 1e-12)
+                    z[sel] = np.abs(r[sel] - np.median(r[sel], 0)) / (mad_sd(r[sel]) + 1e-12)
             if fitter.muted is not None:
                 z[:, fitter.muted] = 0.0
             states[(z > self.start_z).any(1)] += K

@@ -13,6 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..data.statistics import mad_sd
+
 
 def pin_model(robot):
     """Pinocchio model of ``robot`` (a RobotModel with ``.pin_model`` or a ``pinocchio.Model``)."""
@@ -80,7 +82,7 @@ def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.0
     if dq.shape[0] < 5:
         return np.maximum(floor, 1e-3)
     d2 = dq[2:] - 2 * dq[1:-1] + dq[:-2]
-    sigma = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
+    sigma = mad_sd(d2) / np.sqrt(6.0)
     return np.maximum(k * sigma, floor)
 
 
