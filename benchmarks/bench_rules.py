@@ -13,10 +13,10 @@ Rules (``RULES``): ``push_floor_z`` (a push's spread at least 5 predictive sd; o
 offset scan; off: 0, which also retires ``push_scan_z``), ``exclusion_s`` (leave-window-out; off:
 plain leave-one-out), ``abstain`` (flag nothing unless the disturbance mode pays its BIC price;
 off: false), ``rest_band`` (the stuck joint's band; off: false). ``push_s`` / ``gap_s`` are the
-push prior's durations, not on/off rules: halved and doubled. ``min_mode_s`` concerns several
-modes, which these one-mode levers do not have (not run here).
+push prior's durations, not on/off rules: halved and doubled with ``--priors``. ``min_mode_s``
+concerns several modes, which these one-mode levers do not have (not run here).
 
-Usage: python benchmarks/bench_rules.py [--json FILE] [--summarise-only]
+Usage: python benchmarks/bench_rules.py [--json FILE] [--priors] [--summarise-only]
 """
 from __future__ import annotations
 
@@ -31,7 +31,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 RULES = ("push_floor_z=0", "min_push_s=0", "push_scan_s=0", "exclusion_s=0", "abstain=false",
-         "rest_band=false", "push_s=0.5", "push_s=2.0", "gap_s=2.5", "gap_s=10.0")
+         "rest_band=false")
+#: the push prior's durations, halved and doubled (``--priors``)
+PRIORS = ("push_s=0.5", "push_s=2.0", "gap_s=2.5", "gap_s=10.0")
 
 
 def lever_names() -> list[str]:
@@ -44,10 +46,14 @@ def summarise(lines: list[dict]) -> None:
     rows = defaultdict(dict)
     for ln in lines:
         rows[ln["method"]][ln["case"]] = ln
+    # every setting on the same logs (a run stopped early has the last log for some only)
+    common = set.intersection(*(set(per) for per in rows.values())) if rows else set()
+    rows = {m: {c: r for c, r in per.items() if c in common} for m, per in rows.items()}
+    print(f"{len(common)} levers scored by every setting")
     base = _figures(rows.get("mmgp", {}))
     print(f"{'setting':<26}{'within':>8}{'UC worst':>10}{'PM worst':>10}{'free max':>10}{'F1 mean':>9}"
           f"{'d within':>10}{'d UC':>8}{'d PM':>8}{'d free':>8}{'d F1':>8}")
-    for method in ["mmgp"] + [f"mmgp[{r}]" for r in RULES]:
+    for method in ["mmgp"] + [f"mmgp[{r}]" for r in RULES + PRIORS]:
         if method not in rows:
             continue
         f = _figures(rows[method])
@@ -70,10 +76,11 @@ def _figures(per_case: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", type=Path, default=Path("bench_rules.jsonl"))
+    ap.add_argument("--priors", action="store_true", help="also the push prior's durations")
     ap.add_argument("--summarise-only", action="store_true")
     a = ap.parse_args(argv)
     if not a.summarise_only:
-        methods = ",".join(["mmgp"] + [f"mmgp[{r}]" for r in RULES])
+        methods = ",".join(["mmgp"] + [f"mmgp[{r}]" for r in RULES + (PRIORS if a.priors else ())])
         subprocess.run([sys.executable, str(HERE / "bench_labels.py"), "--sets", "issue29", "--only",
                         ",".join(lever_names()), "--methods", methods, "--seeds-1dof", "1", "--json", str(a.json)],
                        check=True, stdout=subprocess.DEVNULL)
