@@ -11,9 +11,9 @@ import numpy as np
 
 from ..data.outputs import jsonable
 from .plausibility import MIN_TORQUE_SHARE
+from .summary import COLUMNS, WHOLE_LOG, finding_line, gp_sentence, grouped, joint_rows, summary_markdown
 
 STAGES = ("nominal", "with_physics", "with_physics_and_gp")
-WHOLE_LOG = ("external_disturbance", "mode_switch")
 
 
 def effect_finding(effect, params: dict, std: dict, evidence: dict, ctx, main_joint: int) -> dict:
@@ -21,7 +21,7 @@ def effect_finding(effect, params: dict, std: dict, evidence: dict, ctx, main_jo
     (``main_joint``: the joint whose held-out error it cuts most)."""
     j = main_joint
     red = 100 * evidence["cv_error_reduction"]
-    tail = (f"adding it cuts the held-out error on joint {j} ({ctx.joint_names[j]}) by {red:.0f}%"
+    tail = (f"adding it cuts the held-out error on {ctx.joint_names[j]} by {red:.0f}%"
             if red > 0 else "it is kept by the selection rule although its own held-out gain is small")
     return {"effect": effect.name, **effect.where(ctx), "params": effect.report_params(params, ctx), "evidence": evidence,
             "explanation": f"{effect.describe(params, std, ctx)} is missing from the model; {tail}."}
@@ -109,7 +109,7 @@ class DiagnosisResult:
 
     def report_markdown(self) -> str:
         effects = [f for f in self.findings if f["effect"] not in WHOLE_LOG]
-        lines = ["# Sim-vs-real diagnosis", ""]
+        lines = ["# Sim-vs-real diagnosis", ""] + summary_markdown(self.findings, self.fit, self.joint_names)
         if self.warnings:
             lines += ["## Warnings", ""] + [f"- **{w}**" for w in self.warnings] + [""]
         if self.withheld:
@@ -122,7 +122,9 @@ class DiagnosisResult:
                          "cross-validated) error significantly over the nominal model.")
             lines += [""] * bool(self.findings) + [f"- {f['explanation']}" for f in self.findings]
         else:
-            lines += ["## Findings", ""] + [f"- {f['explanation']}" for f in self.findings]
+            lines += ["## Findings by joint"]
+            for head, fs in grouped(self.findings, self.joint_names):
+                lines += ["", f"### {head}", ""] + [f"- {f['explanation']}" for f in fs]
         lines += ["", "## Held-out normalised MSE per joint (time-block cross-validation)", "",
                   "| joint | " + " | ".join(STAGES) + " |", "|---|" + "---|" * len(STAGES)]
         for jn in self.joint_names:
@@ -172,6 +174,12 @@ class DiagnosisResult:
         from ..evaluation.html import HtmlReport
 
         page = HtmlReport("mmgp diagnose", subtitle=f"{self.info.get('n_samples')} samples analysed")
+        page.section("Summary", "Held-out normalised MSE per joint (0 is perfect, 1 is the torque's own mean) and "
+                                "what was found on each joint." + (" " + gp_sentence(self.fit, self.joint_names)
+                                                                   if gp_sentence(self.fit, self.joint_names) else ""))
+        page.table(["joint"] + [label for _, label in COLUMNS] + ["found"],
+                   [[r["joint"]] + [r[s] for s, _ in COLUMNS] + ["; ".join(r["found"]) or "nothing"]
+                    for r in joint_rows(self.findings, self.fit, self.joint_names)], kind="summary")
         if self.warnings:
             page.section("Warnings", "What limits the numbers below:")
             page.table(["warning"], [[w] for w in self.warnings], kind="warnings")
@@ -179,9 +187,9 @@ class DiagnosisResult:
                 page.table(["withheld finding", "because"],
                            [[f["explanation"], f["withheld_because"]] for f in self.withheld], kind="withheld")
         page.section("Findings", None if self.findings else "Nothing is missing from the nominal model.")
-        rows = [[f["effect"], f.get("joint") or f.get("link"), f["explanation"],
-                 json.dumps(jsonable(f.get("evidence", {}).get("params_interval")))] for f in self.findings]
-        page.table(["effect", "where", "explanation", "interval"], rows, kind="findings")
+        rows = [[head, finding_line(f), f["explanation"]] for head, fs in grouped(self.findings, self.joint_names)
+                for f in fs]
+        page.table(["where", "found (interval)", "explanation"], rows, kind="findings")
         stages = [s for s in STAGES if s in self.fit]
         page.section("Held-out normalised MSE per joint", "Time-block cross-validation; 0 is perfect, 1 is as good "
                                                           "as the torque's mean.")
@@ -194,7 +202,7 @@ class DiagnosisResult:
                                       "rest of the model leaves.")
             for name in plots:
                 page.figure(out / name)
-        page.section("Summary").json(self.to_dict(), "findings")
+        page.section("findings.json").json(self.to_dict(), "findings")
         return page.write(out / "report.html")
 
 

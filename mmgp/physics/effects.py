@@ -171,13 +171,14 @@ class Effect:
         return params
 
     def describe(self, params: dict, std: dict, ctx: Context) -> str:
-        """The finding in words, e.g. "joint 3 (panda_joint4): Coulomb friction of 1.5 N*m"."""
+        """The finding in words, e.g. "panda_joint4: Coulomb friction of 1.5 N*m" (joints by the
+        URDF's names, as everywhere in the report)."""
         parts = [f"{format_value(params[k], std.get(k))}{(' ' + u) if u else ''}" for k, u in self.units.items()]
         if len(parts) == 1:
             what = f"{self.label} of {parts[0]}"
         else:
             what = f"{self.label} ({', '.join(f'{k} = {v}' for k, v in zip(self.units, parts))})"
-        return f"joint {self.index} ({ctx.joint_names[self.index]}): {what}"
+        return f"{ctx.joint_names[self.index]}: {what}"
 
 
 class _JointColumnEffect(Effect):
