@@ -64,13 +64,19 @@ def threads_for(rows: int, device="cpu") -> int:
 
 
 @contextlib.contextmanager
-def limit_threads(n: int) -> Iterator[None]:
+def limit_threads(n: int, blas_only: bool = False) -> Iterator[None]:
     """Run the block with ``n`` torch intra-op threads and at most ``n`` threads in every
-    BLAS/OpenMP pool (threadpoolctl); the previous counts are restored afterwards."""
-    import torch
+    BLAS/OpenMP pool (threadpoolctl); the previous counts are restored afterwards.
+    ``blas_only``: only the BLAS pools (torch's threads and OpenMP's untouched)."""
     from threadpoolctl import threadpool_limits
 
     n = max(1, int(n))
+    if blas_only:
+        with threadpool_limits(limits=n, user_api="blas"):
+            yield
+        return
+    import torch
+
     before = torch.get_num_threads()
     torch.set_num_threads(n)
     try:

@@ -192,9 +192,9 @@ def test_tasks_run_single_threaded(local_ray):
     def threads():
         from threadpoolctl import threadpool_info
 
-        from mmgp.fleet.work import single_threaded
+        from mmgp.threads import limit_threads
 
-        with single_threaded():
+        with limit_threads(1):
             import torch
 
             inside = (torch.get_num_threads(), sorted({p["num_threads"] for p in threadpool_info()}))

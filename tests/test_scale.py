@@ -78,6 +78,18 @@ def test_limit_threads_sets_torch_and_blas_pools_and_restores_them():
     assert torch.get_num_threads() == before
 
 
+def test_limit_threads_blas_only_leaves_torch_and_openmp_alone():
+    from threadpoolctl import threadpool_info
+
+    before = torch.get_num_threads()
+    pools = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
+    with threads.limit_threads(1, blas_only=True):
+        assert torch.get_num_threads() == before
+        for p in threadpool_info():
+            assert p["num_threads"] == (1 if p["user_api"] == "blas" else pools[p["filepath"]])
+    assert {p["filepath"]: p["num_threads"] for p in threadpool_info()} == pools
+
+
 def test_compare_runs_its_folds_on_one_thread(monkeypatch):
     import mmgp.evaluation.compare as compare_mod
     from mmgp.data.logs import RobotLog

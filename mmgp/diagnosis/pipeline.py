@@ -57,6 +57,7 @@ from sklearn.base import BaseEstimator, clone
 
 from ..errors import InputError
 from ..progress import report
+from ..threads import limit_threads
 from . import stages as st
 from .fitting import effect_findings, fit_physics
 from .modes import near_switches
@@ -207,14 +208,12 @@ class Diagnoser(BaseEstimator):
         """Diagnose ``log`` (a RobotLog, or a log file read against the robot's joints; dq/ddq
         estimated when absent) against ``robot`` (an mmgp RobotModel, or a pinocchio.Model with
         the log's joints). Returns self."""
-        from threadpoolctl import threadpool_limits
-
         self._check()
         _stage("reading the log")
         log = _read(log, robot)
         # the linear algebra here is many small products; multi-threaded BLAS only adds contention
         # (on a busy 2-core machine a 21000 x 90 Gram took 1-3 s threaded and 0.03 s on one thread)
-        with threadpool_limits(limits=1, user_api="blas"):
+        with limit_threads(1, blas_only=True):
             res = self._diagnose(log, robot)
         res = _checked(res, log, robot)
         self.result_ = res

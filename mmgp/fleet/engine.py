@@ -3,7 +3,7 @@
 Ray runs locally by default (``ray.init(num_cpus=workers)``: one task per core), or on the
 cluster at ``address``; a session this process already opened is reused and left open. Every
 task gets one CPU and runs its numerics on one thread: :data:`mmgp.fleet.work.THREAD_ENV` is in
-every worker's environment from its start, and :func:`mmgp.fleet.work.single_threaded` holds
+every worker's environment from its start, and :func:`mmgp.threads.limit_threads` (1) holds
 inside the task. A local Ray started here inherits those variables from this process (set only
 while Ray starts), so the workers Ray starts in advance serve the tasks; a cluster, or a session
 opened elsewhere, gets them as the tasks' ``runtime_env`` (Ray then starts workers for that

@@ -6,7 +6,6 @@ the driver alone writes the output folder.
 """
 from __future__ import annotations
 
-import contextlib
 import os
 import tempfile
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 
 from ..data.times import EXAMPLE, START_TIME_KEY, parse_start_time
 from ..errors import InputError
+from ..threads import limit_threads
 from ..progress import report
 
 #: the metadata key fleets before contract 1.2 read (ISO 8601, a time without zone taken as UTC,
@@ -26,23 +26,6 @@ LEGACY_TIME_KEY = "log_time"
 #: Apple Accelerate, numexpr); Ray's workers get them at start, before numpy or torch load
 THREAD_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                                      "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
-
-
-@contextlib.contextmanager
-def single_threaded():
-    """Run the block's numerics on one thread (BLAS, OpenMP, torch), then restore the counts.
-
-    One task per core: N tasks on N cores each using N BLAS threads would run N^2 threads."""
-    import torch
-    from threadpoolctl import threadpool_limits
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with threadpool_limits(limits=1):
-            yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def _parse_legacy_time(raw: str, path: Path) -> float:
@@ -171,7 +154,7 @@ def process_log(job: dict) -> dict:
     out = blank_outcome(job)
     t0 = time.perf_counter()
     try:
-        with single_threaded():
+        with limit_threads(1):   # one task per core: N tasks x N BLAS threads would run N^2
             _process(path, job, out)
     except InputError as exc:
         out["error"] = str(exc)
