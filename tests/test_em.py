@@ -485,3 +485,24 @@ def test_a_mode_no_sample_ends_in_still_gets_a_defined_gp():
         mean, std = m.predict(x[:20, None], mode=k)
         assert np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()
     assert adjusted_rand_score(mode, m.labels_) >= 0.9
+
+
+def test_true_runs_against_a_loop_over_every_short_mask():
+    """separation.runs (from estep.stretches) against a plain loop, on every mask of up to 10 samples."""
+    import itertools
+
+    from mmgp.diagnosis.separation import runs
+
+    def loop(mask):
+        out, start = [], None
+        for i, m in enumerate(list(mask) + [False]):
+            if m and start is None:
+                start = i
+            elif not m and start is not None:
+                out.append((start, i))
+                start = None
+        return out
+
+    for T in range(11):
+        for bits in itertools.product([False, True], repeat=T):
+            assert runs(np.array(bits, bool)) == loop(bits)

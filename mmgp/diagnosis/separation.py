@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data.statistics import mad_sd
+from ..models.estep import stretches
 
 #: the ``separate`` setting of the Diagnoser: method name -> what it does (as reported)
 SEPARATION_METHODS = {
@@ -33,8 +34,12 @@ SEPARATION_METHODS = {
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """Half-open index ranges [a, b) of the True stretches of ``mask`` (T,)."""
-    d = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        return []
+    first, length = stretches(mask)
+    keep = mask[first]
+    return [(int(a), int(a + n)) for a, n in zip(first[keep], length[keep])]
 
 
 def spans_of(mask: np.ndarray, t: np.ndarray) -> list[tuple[float, float]]:
