@@ -33,8 +33,6 @@ from .metrics import COMPARE_LABELS, normalised_mse
 from ..threads import limit_threads
 from ..gp.exact import ExactGP
 from ..gp.linalg import resolve_device
-from ..gp.hyper import default_hyper, optimise_hyper
-from ..gp.objectives import leave_block_out
 from ..data.logs import RobotLog
 from ..errors import InputError
 from ..data.outputs import atomic_write_bytes, jsonable
@@ -53,10 +51,8 @@ def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: 
         return ExactGP(**opts).fit(X, Y)
     k = min(len(X), int(opts.get("max_fit_points", 1000)))
     fit_idx = np.unique(np.linspace(0, len(X) - 1, k).round().astype(int))
-    # Condition once on the fitting subset for its standardisation; tune in those units.
-    gp = ExactGP(**opts).fit(X[fit_idx], Y[fit_idx], hyper=default_hyper(X.shape[1], Y.shape[1]), optimise=False)
-    hyper, _ = optimise_hyper(gp.Xs_, gp.Ys_, gp.hyper_, objective=leave_block_out(t[fit_idx], block_s),
-                              max_iter=int(opts.get("max_iter", 60)), noise_floor=float(opts.get("noise_floor", 1e-6)))
+    hyper = ExactGP(**opts).block_hyper(X[fit_idx], Y[fit_idx], t[fit_idx], block_s, max_iter=int(opts.get("max_iter", 60)),
+                                        noise_floor=float(opts.get("noise_floor", 1e-6)))
     return ExactGP(**opts).fit(X, Y, hyper=hyper, optimise=False)
 
 

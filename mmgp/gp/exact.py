@@ -25,11 +25,11 @@ import torch
 from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
-from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets
+from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets, optimise_hyper
 from .kernels import rbf_kernel
 from ..threads import threads_for_rows
 from .linalg import DTYPE, GPNumericalError, gaussian_logpdf, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
-from .objectives import loo_from_inverse
+from .objectives import leave_block_out, loo_from_inverse
 
 #: kernel matrices of all outputs together up to this many bytes are factorised as one batch
 #: (m, N, N) (fast for the EM's small supports); larger ones one output at a time
@@ -101,6 +101,18 @@ class StandardisedRBFGP(BaseEstimator):
         if var_s is None:
             return out(mean)
         return out(mean), out(np.sqrt(var_s.cpu().numpy()) * self.y_scaler_.scale_)
+
+    def block_hyper(self, X: np.ndarray, Y: np.ndarray, t: np.ndarray, block_s: float, *,
+                    hyper: Hyper | None = None, max_iter: int = 60, noise_floor: float = 1e-6) -> Hyper:
+        """Hyperparameters (standardised units) maximising the leave-time-block-out log
+        predictive (:func:`mmgp.gp.objectives.leave_block_out`, blocks of ``block_s`` s) of X
+        (N, d) -> Y (N, m) sampled at times ``t`` (N,) s, climbed from ``hyper`` (None: the
+        default start) for at most ``max_iter`` iterations. Conditions this GP on X, Y (without
+        optimising) for their standardisation: refit it on what it should predict from."""
+        self.fit(X, Y, hyper=hyper or default_hyper(X.shape[1], np.atleast_2d(Y.T).shape[0]), optimise=False)
+        out, _ = optimise_hyper(self.Xs_, self.Ys_, self.hyper_, objective=leave_block_out(t, block_s),
+                                max_iter=max_iter, noise_floor=noise_floor)
+        return out
 
     def loo_log_predictive(self) -> float:
         """Sum over samples and outputs of the LOO log predictive density, in data units."""

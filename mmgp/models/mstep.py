@@ -14,10 +14,9 @@ import numpy as np
 from scipy.special import log_ndtr, logsumexp
 
 from ..gp.exact import ExactGP
-from ..gp.hyper import Hyper, default_hyper, optimise_hyper
+from ..gp.hyper import Hyper
 from ..gp.linalg import gaussian_logpdf
 from ..gp.sparse import make_gp
-from ..gp.objectives import leave_block_out
 from ..gp.windowed import windowed_predictive
 from .estep import stretches
 from .hmm import _transition_counts
@@ -261,13 +260,10 @@ class ModeFitter:
         # Condition once on the fitting subset to get the standardisation, then tune there.
         X, s = self.X, self.settings
         fit_idx = evenly_spaced(support, s.fit_points)
-        gp.fit(X[fit_idx], Y[fit_idx], hyper=hyper or default_hyper(X.shape[1], Y.shape[1]), optimise=False)
         # Warm-started refits on long logs (where refits dominate the cost) get half the
         # iterations of the first fit.
         iters = s.fit_iter if (hyper is None or len(Y) <= 2000) else max(10, s.fit_iter // 2)
-        hyper, _ = optimise_hyper(gp.Xs_, gp.Ys_, gp.hyper_, max_iter=iters,
-                                  objective=leave_block_out(self.t_axis[fit_idx], s.block_s))
-        return hyper
+        return gp.block_hyper(X[fit_idx], Y[fit_idx], self.t_axis[fit_idx], s.block_s, hyper=hyper, max_iter=iters)
 
 
 def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, n_modes: int,
