@@ -52,8 +52,7 @@ def diagnose(log: Path = typer.Argument(..., help="Log of the real robot."),
                     shown.step(line)
     except InputError as exc:
         _fail(exc)
-    report = out / "report.md"
-    typer.echo(report.read_text() if report.is_file() else (out / "findings.json").read_text())
+    typer.echo(diagnoser.result_.report_markdown())     # report.md without its plot links
     echo_warnings(diagnoser.result_.warnings)
 
 
