@@ -153,6 +153,7 @@ def _body_lines(model, j: int, depth: int, props, extras: dict[int, list[str]], 
 
 def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, frictionloss=None, damping=None,
                armature=None, stiffness=None, springref=None, payload: dict | None = None,
+               tendons: Sequence[dict] = (), comment: str | None = None,
                timestep: float = 0.001, gravity: bool = True) -> str:
     """MJCF XML of a fixed-base robot, built from Pinocchio's parse of ``urdf_path``.
 
@@ -168,6 +169,10 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
     ``payload={"link": name, "mass": kg, "com": [x, y, z]}`` (com in that link's frame, m; optional
     ``"inertia"``: 3 principal or 6 ``[xx, yy, zz, xy, xz, yz]`` values about the com in the link
     frame, default a solid 5 cm sphere) adds a body named ``"payload"`` welded to the link.
+
+    ``tendons``: fixed tendons, each ``{"name", "joints": [(joint name, coef), ...], "frictionloss"
+    (N*m), "damping" (N*m*s/rad), "armature" (kg*m^2)}`` (:func:`tendon_element`). ``comment``: text
+    of an XML comment put before the ``<mujoco>`` element.
 
     Each joint gets a body named after the URDF link it moves, a ``<site>`` for every URDF link
     frame (named after the link) and a plain torque motor named after the joint (gear 1, no
@@ -196,15 +201,45 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
     q0 = pin.neutral(model)
     lines = [ln for c in children[0] for ln in _body_lines(model, c, 2, props, extras, children, q0)]
     motors = "\n".join(f'    <motor name={quoteattr(nm)} joint={quoteattr(nm)} gear="1"/>' for nm in model.names[1:])
-    return f"""<mujoco model={quoteattr(Path(urdf_path).stem)}>
+    names = list(model.names[1:])
+    tendon = "  <tendon>\n" + "".join(tendon_element(t, names) for t in tendons) + "  </tendon>\n" if tendons else ""
+    return f"""{xml_comment(comment)}<mujoco model={quoteattr(Path(urdf_path).stem)}>
   <compiler angle="radian" autolimits="true" balanceinertia="false" boundmass="0" boundinertia="0"/>
 {option_element(timestep, gravity)}
   <worldbody>
     {world_payload}
 {chr(10).join(lines)}
   </worldbody>
-  <actuator>
+{tendon}  <actuator>
 {motors}
   </actuator>
 </mujoco>
 """
+
+
+def tendon_element(tendon: dict, joint_names: Sequence[str]) -> str:
+    """MJCF ``<fixed>`` tendon (length ``sum coef_i q_i``) of ``tendon`` (see :func:`build_mjcf`);
+    MuJoCo applies its friction loss, damping and armature along the tendon, on each joint
+    ``coef_i`` times (virtual work)."""
+    joints = list(tendon["joints"])
+    unknown = [nm for nm, _ in joints if nm not in joint_names]
+    if unknown:
+        raise ValueError(f"tendon {tendon['name']!r}: joints {unknown} are not in the model ({list(joint_names)})")
+    vals = {k: float(tendon.get(k, 0.0)) for k in ("frictionloss", "damping", "armature")}
+    coefs = [float(c) for _, c in joints]
+    if not all(np.isfinite(v) and v >= 0 for v in vals.values()) or not np.isfinite(coefs).all():
+        raise ValueError(f"tendon {tendon['name']!r}: friction loss, damping and armature must be finite and "
+                         f"non-negative, coefficients finite; got {vals}, {coefs}")
+    attrs = " ".join(f'{k}="{v:.17g}"' for k, v in vals.items())
+    rows = "".join(f'      <joint joint={quoteattr(nm)} coef="{c:.17g}"/>\n' for (nm, _), c in zip(joints, coefs))
+    return f'    <fixed name={quoteattr(tendon["name"])} {attrs}>\n{rows}    </fixed>\n'
+
+
+def xml_comment(text: str | None) -> str:
+    """``<!-- text -->`` and a newline (empty for None); a ``--`` in ``text``, which XML forbids
+    inside a comment, becomes ``- -``."""
+    if not text:
+        return ""
+    while "--" in text:
+        text = text.replace("--", "- -")
+    return f"<!--\n{text.rstrip()}\n-->\n"
