@@ -42,7 +42,8 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    regression, HMM predictive from samples a filter memory earlier, on held-out blocks).
 5. *Tell*: findings per CONTRACT section 2/3 (a finding whose torque stays under half a percent of
    its joint torque's spread is withheld as too small to name: ``plausibility.MIN_TORQUE_SHARE``),
-   a Markdown report and residual plots.
+   a Markdown report and residual plots; the corrected model (``corrected.urdf``, ``corrected.xml``:
+   the nominal model with what MuJoCo can express of the findings, ``mmgp.diagnosis.corrected``).
 
 Units: N*m, rad, s throughout; shapes (T, n) for T samples of n joints.
 """
@@ -145,7 +146,8 @@ class Diagnoser(BaseEstimator):
     normalised MSE per joint at the stages "nominal", "with_physics", "with_physics_and_gp"),
     ``location_``, ``labels_`` (per analysed sample t, mode, disturbed; None without modes or
     pushes), ``info_`` and ``result_`` (a :class:`DiagnosisResult`); ``report(dir)`` writes
-    findings.json, report.md, plots and labels.parquet.
+    findings.json, report.md, plots, labels.parquet and the corrected model (corrected.urdf,
+    corrected.xml: ``mmgp.diagnosis.corrected``).
     """
 
     def __init__(self, effects=None, selector=None, differentiator=None, *, n_folds: int = 20, alpha: float = 0.05,
@@ -216,14 +218,18 @@ class Diagnoser(BaseEstimator):
         with limit_threads(1, blas_only=True):
             res = self._diagnose(log, robot)
         res = _checked(res, log, robot)
+        # the corrected model (report) is written from the nominal URDF; a bare pinocchio.Model has none
+        urdf = getattr(robot, "urdf_path", None)
+        res = dataclasses.replace(res, urdf=None if urdf is None else str(urdf))
         self.result_ = res
         self.findings_, self.fit_stages_, self.location_ = res.findings, res.fit, res.location
         self.labels_, self.info_ = res.labels, res.info
         return self
 
     def report(self, out_dir) -> Path:
-        """Write findings.json, report.md, residual plots and (with modes or pushes)
-        labels.parquet into ``out_dir``; returns it."""
+        """Write findings.json, report.md, residual plots, (with modes or pushes)
+        labels.parquet and the corrected model (corrected.urdf, corrected.xml; not without a
+        URDF) into ``out_dir``; returns it."""
         from sklearn.utils.validation import check_is_fitted
 
         check_is_fitted(self, "result_")

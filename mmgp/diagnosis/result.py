@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.outputs import jsonable
+from .corrected import corrected_markdown, write_corrected
 from .plausibility import MIN_TORQUE_SHARE
 from .summary import COLUMNS, WHOLE_LOG, finding_line, gp_sentence, grouped, joint_rows, summary_markdown
 
@@ -87,7 +88,9 @@ class DiagnosisResult:
     ``explanation``; ``fit``: {stage: {"nmse": {joint: value}, "mean_nmse": value}, "folds",
     "samples_used", "samples_excluded_as_disturbed"}; ``location``: per joint, where the nominal
     residual concentrates; ``labels``: per analysed sample {"t", "mode" (int), "disturbed"
-    (0/1)} when modes or pushes were found; ``plot_data``: arrays for the residual plots.
+    (0/1)} when modes or pushes were found; ``plot_data``: arrays for the residual plots;
+    ``urdf``: the nominal URDF the diagnosis used (None: a robot given without one);
+    ``corrected``: what :meth:`write` wrote of the corrected model (``corrected.write_corrected``).
     """
 
     findings: list
@@ -99,10 +102,13 @@ class DiagnosisResult:
     labels: dict | None = field(default=None, repr=False)
     warnings: list = field(default_factory=list)
     withheld: list = field(default_factory=list)
+    urdf: str | None = None
+    corrected: dict | None = None
 
     def to_dict(self) -> dict:
-        return {"findings": self.findings, "warnings": self.warnings, "withheld_findings": self.withheld,
-                "fit": self.fit, "location": self.location, "info": self.info}
+        out = {"findings": self.findings, "warnings": self.warnings, "withheld_findings": self.withheld,
+               "fit": self.fit, "location": self.location, "info": self.info}
+        return out if self.corrected is None else {**out, "corrected_model": self.corrected}
 
     def to_json(self, indent: int = 2) -> str:
         return json.dumps(jsonable(self.to_dict()), indent=indent)
@@ -145,18 +151,21 @@ class DiagnosisResult:
                   "block jackknife over the folds. Coulomb friction uses tanh(dq/v_s), v_s = "
                   f"{self.info.get('sign_noise_factor')} x velocity noise: "
                   + ", ".join(f"{v:.3g}" for v in self.info.get("v_s", [])) + " rad/s.", ""]
+        lines += corrected_markdown(self.corrected)
         if self.info.get("plots"):
             lines += ["## Plots", ""] + [f"![{p}]({p})" for p in self.info["plots"]]
         return "\n".join(lines) + "\n"
 
     def write(self, out_dir) -> Path:
-        """Write ``findings.json``, ``report.md``, residual plots (with plot data) and (when modes
-        or pushes were found) ``labels.parquet`` (t, mode, disturbed per analysed sample)."""
+        """Write ``findings.json``, ``report.md``, residual plots (with plot data), (when modes
+        or pushes were found) ``labels.parquet`` (t, mode, disturbed per analysed sample) and the
+        corrected model, ``corrected.urdf`` and ``corrected.xml`` (CONTRACT 1.2; none without a
+        URDF, and the report says so)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        doc = self
+        doc = dataclasses.replace(self, corrected=write_corrected(self.findings, self.urdf, self.joint_names, out))
         if self.plot_data is not None:
-            doc = dataclasses.replace(self, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
+            doc = dataclasses.replace(doc, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
         (out / "findings.json").write_text(doc.to_json())
         if self.labels is not None:
             import pandas as pd
@@ -195,6 +204,7 @@ class DiagnosisResult:
                                                           "as the torque's mean.")
         page.table(["joint"] + stages, [[j] + [self.fit[s]["nmse"].get(j) for s in stages] for j in self.joint_names],
                    kind="nmse")
+        self._html_corrected(page)
         plots = self.info.get("plots") or []
         if plots:
             page.section("Residuals", "Per joint: residual against velocity, position and torque before and "
@@ -204,6 +214,19 @@ class DiagnosisResult:
                 page.figure(out / name)
         page.section("findings.json").json(self.to_dict(), "findings")
         return page.write(out / "report.html")
+
+    def _html_corrected(self, page) -> None:
+        """The corrected model's part of report.html (see ``corrected_markdown``)."""
+        c = self.corrected
+        if c is None:
+            return
+        if not c.get("written"):
+            page.section("Corrected model", f"Not written: {c.get('why')}.")
+            return
+        page.section("Corrected model", "corrected.urdf (Pinocchio) and corrected.xml (MuJoCo) in this folder; "
+                                        "load them with: " + " / ".join(c["load"][1:]))
+        rows = [["written", w] for w in c["carries"]] + [["not expressed in MJCF", w] for w in c["not_expressed"]]
+        page.table(["", "what"], rows, kind="corrected")
 
 
 def plot_residuals(d: dict, out: Path) -> list[str]:

@@ -10,6 +10,8 @@ so a Pinocchio-based learner can be checked against them. Modules:
 * :mod:`.excitation`: reference trajectories and push schedules.
 * :mod:`.scenarios`: the stock recordings :func:`actuator_replica` and :func:`panda_modes`.
 * :mod:`.concealed`: recordings with concealed effects and their truth, for the diagnosis.
+* :mod:`.inverse`: MuJoCo inverse dynamics of a logged trajectory (dry friction as a law), e.g. of
+  the corrected model ``mmgp diagnose`` writes.
 """
 try:
     import mujoco  # noqa: F401
@@ -18,6 +20,7 @@ except ImportError as exc:  # the one message a user without the extra sees
                       "(pip install 'mmgp[sim]')") from exc
 
 from .excitation import fourier_reference, push_schedule, sines_reference, sinusoid_reference
+from .inverse import explained_share, inverse_dynamics
 from .mjcf import (NOSLIP_ITERATIONS, body_name, build_mjcf, load_model, panda_urdf_path, reduced_pinocchio_model,
                    robot_urdf_path, set_payload)
 from .recording import LABEL_RULE, Push, Recording, contract_disturbed, simulate
@@ -26,7 +29,8 @@ from .scenarios import (PANDA, PANDA_JOINTS, REPLICA, actuator_replica, panda_mo
 
 __all__ = [
     "LABEL_RULE", "NOSLIP_ITERATIONS", "PANDA", "PANDA_JOINTS", "REPLICA", "Push", "Recording",
-    "actuator_replica", "body_name", "build_mjcf", "contract_disturbed", "fourier_reference", "load_model",
+    "actuator_replica", "body_name", "build_mjcf", "contract_disturbed", "explained_share", "fourier_reference",
+    "inverse_dynamics", "load_model",
     "panda_modes", "panda_urdf_path", "push_schedule", "random_link_pushes", "reduced_pinocchio_model",
     "replica_mjcf", "robot_urdf_path", "set_payload", "simulate", "sines_reference", "sinusoid_reference",
 ]

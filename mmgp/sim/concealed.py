@@ -10,7 +10,7 @@ vocabulary (CONTRACT section 3), so a diagnosis can be scored pair by pair.
 ``make_case(spec, seed) -> (Recording, truth)``; :data:`STANDARD_CASES` lists >= 20 specs
 (7-DOF Panda and the 1-DOF actuator lever). Recordings come from MuJoCo only.
 
-Spec (dict): ``robot`` ("panda", "actuator", or an example-robot-data name), ``effects`` (list of
+Spec (dict): ``robot`` ("panda", "actuator", an example-robot-data name or a URDF path), ``effects`` (list of
 {"effect", "joint" or "link", "params"}; a param given as {"rel": x} is x times the RMS of that
 joint's nominal torque on the same trajectory, measured in a MuJoCo run without effects),
 ``pushes`` (bool), ``modes`` (payload masses list or None), ``n_samples``, ``rate_hz``,
@@ -71,12 +71,13 @@ def actuator_urdf_path() -> str:
 
 
 def robot_setup(robot: str) -> tuple[str, list[str]]:
-    """(URDF path, joint names) of a case's robot."""
+    """(URDF path, joint names) of a case's robot: "actuator", "panda", an example-robot-data
+    name, or a URDF file (a path ending in ``.urdf``; every movable joint)."""
     if robot == "actuator":
         return actuator_urdf_path(), ["lever_joint"]
     if robot == "panda":
         return panda_urdf_path(), list(PANDA_JOINTS)
-    urdf = robot_urdf_path(robot)
+    urdf = str(robot) if str(robot).endswith(".urdf") else robot_urdf_path(robot)
     m = reduced_pinocchio_model(urdf)
     return urdf, [str(n) for n in m.names[1:]]
 
