@@ -151,11 +151,29 @@ class ExactGP(StandardisedRBFGP):
     data units, ``objective_value_`` (per-sample objective on the fitting subset), ``per_output_``.
     """
 
-    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "ExactGP":
-        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
+    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True,
+            weights: np.ndarray | None = None) -> "ExactGP":
+        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters.
+        ``weights`` (m, N): what :meth:`solved_weights` returned for the same X, Y and ``hyper``
+        (``optimise=False``); a large fit (``per_output_``) then predicts its mean without
+        factorising, which is what costs O(N^3) per output."""
         _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
         self._condition(Xs, Ys)
+        if weights is not None and self.per_output_:
+            if np.shape(weights) != (Ys.shape[1], Ys.shape[0]):
+                raise ValueError(f"weights must be (m, N) = {(Ys.shape[1], Ys.shape[0])}, got {np.shape(weights)}")
+            self._alpha = list(torch.as_tensor(np.asarray(weights, dtype=np.float64), dtype=DTYPE, device=self.dev_))
         return self
+
+    def solved_weights(self) -> np.ndarray | None:
+        """``K^-1 y`` (m, N) per output in standardised units, or None while an output's are not
+        solved yet (a large fit solves them when first predicted)."""
+        check_is_fitted(self, "hyper_")
+        if not self.per_output_:
+            return self.alpha_.cpu().numpy()
+        if any(a is None for a in self._alpha):
+            return None
+        return torch.stack(self._alpha).cpu().numpy()
 
     def _condition(self, Xs: torch.Tensor, Ys: torch.Tensor) -> None:
         self.Xs_, self.Ys_ = Xs, Ys
