@@ -61,6 +61,24 @@ def test_stored_weights_predict_without_factorising(monkeypatch):
         ExactGP().fit(X, Y, hyper=first.hyper_, optimise=False, weights=w[:, :10])
 
 
+def test_cross_kernel_is_the_rbf_kernel():
+    """The prediction kernel (one augmented product) against the RBF formula, numpy differences."""
+    import torch
+
+    from mmgp.gp.kernels import rbf_cross_kernel
+
+    rng = np.random.default_rng(1)
+    X1, X2 = rng.normal(size=(50, 6)), rng.normal(size=(40, 6)) * 3
+    X2[:5] = X1[:5]  # coincident points: the kernel's peak, where the product form cancels most
+    l, s2 = rng.uniform(0.5, 3.0, size=6), 2.7
+    ref = s2 * np.exp(-0.5 * np.sum(((X1[:, None] - X2[None]) / l) ** 2, axis=2))
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+    got = rbf_cross_kernel(t(X1), t(X2), t(l), t(s2)).numpy()
+    # rounding of |A|^2 + |B|^2 - 2 A.B (|A|^2 up to ~50 here) before exp: ~50 * 1e-16 relative
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-300)
+    assert np.all(got <= s2)
+
+
 @pytest.fixture(scope="module")
 def saved_models(tmp_path_factory):
     """A replica-lever model saved with its solved weights, and a copy without them."""

@@ -26,7 +26,7 @@ from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
 from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets
-from .kernels import rbf_kernel
+from .kernels import rbf_cross_kernel, rbf_kernel
 from ..threads import threads_for_rows
 from .linalg import DTYPE, LOG_2PI, GPNumericalError, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
 from .objectives import loo_from_inverse
@@ -238,21 +238,33 @@ class ExactGP(StandardisedRBFGP):
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         N = self.Xs_.shape[0]
         chunk_size = max(64, int(4e6 // N))
+        if not return_std:
+            return self._data_units(self._mean_per_output(Xq, chunk_size), None)
         means, vars_ = [], []
         for j in range(len(self._alpha)):
-            L = self._factor(j) if (return_std or self._alpha[j] is None) else None
+            L = self._factor(j)
             m_j, v_j = [], []
             for chunk in torch.split(Xq, chunk_size):
                 Ks = rbf_kernel(self.Xs_, chunk, ls[j:j + 1], sf[j:j + 1])[0]          # (N, Q)
                 m_j.append(Ks.T @ self._alpha[j])
-                if return_std:
-                    V = torch.linalg.solve_triangular(L, Ks, upper=False)
-                    v_j.append((sf[j] - (V * V).sum(0)).clamp_min(1e-12) + (sn[j] if include_noise else 0.0))
+                V = torch.linalg.solve_triangular(L, Ks, upper=False)
+                v_j.append((sf[j] - (V * V).sum(0)).clamp_min(1e-12) + (sn[j] if include_noise else 0.0))
             del L
             means.append(torch.cat(m_j))
-            if return_std:
-                vars_.append(torch.cat(v_j))
-        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1) if return_std else None)
+            vars_.append(torch.cat(v_j))
+        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1))
+
+    def _mean_per_output(self, Xq: torch.Tensor, chunk_size: int) -> torch.Tensor:
+        """Standardised posterior means (M, m) of a large fit, output by output, solving an output's
+        weights where they are not yet solved (:func:`rbf_cross_kernel`: the mean alone)."""
+        ls, sf, _ = self.hyper_.to_torch(self.dev_)
+        means = []
+        for j in range(len(self._alpha)):
+            if self._alpha[j] is None:
+                self._factor(j)  # caches the weights; the factor itself is not needed here
+            means.append(torch.cat([rbf_cross_kernel(chunk, self.Xs_, ls[j], sf[j]) @ self._alpha[j]
+                                    for chunk in torch.split(Xq, chunk_size)]))
+        return torch.stack(means, 1)
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """Leave-one-out predictive mean and std (N, m) of the training outputs (closed form)."""
