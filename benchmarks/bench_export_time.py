@@ -107,7 +107,8 @@ def main() -> None:
     args = ap.parse_args()
     if (args.run is None) == (args.make is None):
         ap.error("give --run or --make")
-    run = args.run if args.run is not None else make_run(args.make, not args.no_pushes)
+    # resolved: each export runs in its code's folder
+    run = (args.run if args.run is not None else make_run(args.make, not args.no_pushes)).resolve()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         old_root = tmp / "old"
