@@ -327,10 +327,9 @@ class MultimodalGP(BaseEstimator):
         """
         import time
 
-        from .evaluation.heldout import heldout_score
+        from .evaluation.heldout import heldout_score, heldout_warnings
         from .models.dissipation import fit_dissipative
         from .models.sem import MultimodalSEM, select_n_modes
-        from .physics.plausibility import fit_warnings
 
         t0 = time.perf_counter()
         self._validate()
@@ -373,8 +372,7 @@ class MultimodalGP(BaseEstimator):
         self.report_.update(windows_shortened_s=shortened, thinning=thinning, dissipation=dissipation,
                             heldout=heldout_score(self))
         self.report_["timings"].update(heldout_s=self.report_["heldout"]["seconds"], total_s=time.perf_counter() - t0)
-        held = self.report_["heldout"]["nmse"]
-        self.report_["warnings"] += fit_warnings(self.joint_names_, held["rigid_body"], held["model"])
+        self.report_["warnings"] += heldout_warnings(self.report_["heldout"], self.joint_names_)
         return self
 
     def _set_sem(self, sem) -> None:
@@ -411,6 +409,8 @@ class MultimodalGP(BaseEstimator):
             gp = make_gp(len(self.support_Y_[mode]), method=kind, device=self.device, ard=self.ard, seed=self.seed,
                          n_inducing=self.n_inducing, n_subset=self.n_inducing)
             extra = {"inducing": self.inducing_[mode]} if kind == "sgpr" else {}
+            if kind == "exact":  # solved weights stored with the model, where it has them
+                extra["weights"] = (getattr(self, "gp_weights_", None) or [None] * self.n_modes_)[mode]
             self._gps[mode] = gp.fit(self.support_X_[mode], self.support_Y_[mode], hyper=self.hypers_[mode],
                                      optimise=False, **extra)
         return self._gps[mode]
@@ -419,7 +419,7 @@ class MultimodalGP(BaseEstimator):
         """Torque mean and std (T, n) in N*m (N) in ``mode`` (0 = nominal) at q, dq, ddq (T, n)
         (or (T,) for one joint, or (n,) for one sample); only the mean with ``return_std=False``.
         With a robot the rigid-body part is included."""
-        mean, std = self._predict(q, dq, ddq, mode)
+        mean, std = self._predict(q, dq, ddq, mode, return_std=return_std)
         return (mean, std) if return_std else mean
 
     def nominal_torque(self, q) -> np.ndarray:
@@ -432,10 +432,9 @@ class MultimodalGP(BaseEstimator):
         static error on the replica lever)."""
         z = np.zeros_like(self._states(q, "q"))
         if self.friction_scale_ is None:
-            return self._predict(q, z, z, 0)[0]
-        # both branches in one prediction: a large exact GP factorises once per call
+            return self._predict(q, z, z, 0, return_std=False)[0]
         both = self._predict(np.vstack([q, q]), np.vstack([z, z]), np.vstack([z, z]), 0,
-                             friction_sign=np.repeat([1.0, -1.0], len(z))[:, None])[0]
+                             friction_sign=np.repeat([1.0, -1.0], len(z))[:, None], return_std=False)[0]
         return 0.5 * (both[:len(z)] + both[len(z):])
 
     def _states(self, a, name: str) -> np.ndarray:
@@ -448,7 +447,8 @@ class MultimodalGP(BaseEstimator):
             raise InputError(f"{name} must be (T, {n}) for this model's {n} joint(s), got shape {np.shape(a)}")
         return a
 
-    def _predict(self, q, dq, ddq, mode, friction_sign=None):
+    def _predict(self, q, dq, ddq, mode, friction_sign=None, return_std: bool = True):
+        # an exact GP's std costs O(N^2) per query and output, its mean O(N) (N support samples)
         q, dq, ddq = (self._states(a, name) for a, name in ((q, "q"), (dq, "dq"), (ddq, "ddq")))
         if not (len(q) == len(dq) == len(ddq)):
             raise InputError(f"q, dq, ddq must have the same number of rows, got {len(q)}, {len(dq)}, {len(ddq)}")
@@ -457,8 +457,8 @@ class MultimodalGP(BaseEstimator):
         f = state_features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
                       friction_scale=self.friction_scale_, friction_sign=friction_sign,
                       basis_kind=self.basis_kind_ if coef is not None else None)
-        mean, std = gp.predict(f.X, include_noise=True)
-        mean, std = mean.reshape(len(q), -1), std.reshape(len(q), -1)
+        mean, std = gp.predict(f.X, include_noise=True) if return_std else (gp.predict(f.X, return_std=False), None)
+        mean, std = mean.reshape(len(q), -1), (None if std is None else std.reshape(len(q), -1))
         if coef is not None:
             mean = mean + np.einsum("tjp,jp->tj", f.basis, coef)
         if f.tau_rbd is not None and self.semiparametric_ == "residual":
@@ -479,10 +479,12 @@ class MultimodalGP(BaseEstimator):
         """Write ``model.npz`` (per mode ``X_k``, ``Y_k`` support, ``lengthscale_k``,
         ``signal_var_k``, ``noise_var_k``, optional ``basis_coef_k`` and ``inducing_k`` (SGPR
         inducing inputs), ``friction_scale``) and ``model.json`` (format, version, settings,
-        robot, joints, ``gp_kinds``) into ``out_dir`` (created)."""
+        robot, joints, ``gp_kinds``) into ``out_dir`` (created); a large exact GP's solved
+        weights too (``weights_k``, :func:`mmgp.models.saved.store_gp_weights`)."""
         import io
 
         from .data.outputs import atomic_write_bytes
+        from .models.saved import store_gp_weights
 
         check_is_fitted(self, "support_X_")
         arrays = {}
@@ -497,11 +499,14 @@ class MultimodalGP(BaseEstimator):
                 arrays[f"inducing_{k}"] = self.inducing_[k]
         if self.friction_scale_ is not None:
             arrays["friction_scale"] = self.friction_scale_
+        digests = store_gp_weights(self.n_modes_, getattr(self, "_gps", None), getattr(self, "gp_weights_", None),
+                                   arrays)
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
                 "n_modes": self.n_modes_, "joint_names": self.joint_names_, "settings": self._settings_record(),
-                "robot": self.robot_spec_, "mean_basis": self.basis_kind_, "gp_kinds": self.gp_kinds_}
+                "robot": self.robot_spec_, "mean_basis": self.basis_kind_, "gp_kinds": self.gp_kinds_,
+                "gp_weights_sha256": digests}
         out_dir = Path(out_dir)
         atomic_write_bytes(out_dir / "model.npz", buf.getvalue())
         atomic_write_bytes(out_dir / "model.json", json.dumps(meta, indent=2).encode())
@@ -511,7 +516,7 @@ class MultimodalGP(BaseEstimator):
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
         format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
-        from .models.saved import read_model_arrays, read_model_meta, read_model_robot
+        from .models.saved import read_gp_weights, read_model_arrays, read_model_meta, read_model_robot
 
         model_dir = Path(model_dir)
         meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, MODEL_VERSION))
@@ -529,6 +534,7 @@ class MultimodalGP(BaseEstimator):
         model.basis_coef_ = [z.get(f"basis_coef_{k}") for k in range(K)]
         model.friction_scale_ = z.get("friction_scale")
         model.inducing_ = [z.get(f"inducing_{k}") for k in range(K)]
+        model.gp_weights_ = read_gp_weights(meta, z)
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support
         model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
         model.basis_kind_ = meta.get("mean_basis")

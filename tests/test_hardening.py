@@ -81,6 +81,8 @@ MODEL_DAMAGES = {
     "array missing": (lambda d: _edit_npz(d / "model.npz", drop="Y_0"), "Y_0"),
     "array of another shape": (lambda d: _edit_npz(d / "model.npz", X_0=np.zeros((3, 2))), "X_0"),
     "array not finite": (lambda d: _edit_npz(d / "model.npz", noise_var_0=np.array([np.nan])), "noise_var_0"),
+    "weights digest not a list": (lambda d: _edit_json(d / "model.json", gp_weights_sha256="ab"), "gp_weights_sha256"),
+    "weights of another shape": (lambda d: _edit_npz(d / "model.npz", weights_0=np.zeros((1, 3))), "weights_0"),
 }
 
 

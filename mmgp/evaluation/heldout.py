@@ -45,10 +45,11 @@ from ..data.folds import default_gap, time_block_folds
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, Standardiser
 from ..models.mstep import ModeFitter, evenly_spaced
+from ..physics.plausibility import fit_warnings
 from ..progress import report
 from .metrics import HELDOUT_LABELS, normalised_mse
 
-__all__ = ["heldout_score", "format_heldout"]
+__all__ = ["heldout_score", "heldout_warnings", "format_heldout"]
 
 SCORED = "undisturbed samples only: a disturbed sample's torque holds an unmeasured external torque"
 
@@ -86,6 +87,13 @@ def heldout_score(model, *, n_folds: int = 5, max_support: int = 2000, gap: int 
             "mean_predictor": "each test block predicted by its fold's training-sample mean (computed, not 1 "
                               "by definition)",
             "seconds": time.perf_counter() - t0}
+
+
+def heldout_warnings(heldout: dict, joint_names: list) -> list[str]:
+    """The fit warnings (:func:`mmgp.physics.plausibility.fit_warnings`) of a held-out score:
+    the nominal rigid body's and the learnt model's normalised MSE per joint."""
+    nmse = heldout["nmse"]
+    return fit_warnings(joint_names, nmse["rigid_body"], nmse["model"])
 
 
 def _gap(model, t: np.ndarray, T: int, n_folds: int) -> int:

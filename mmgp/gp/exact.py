@@ -26,7 +26,7 @@ from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
 from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets, optimise_hyper
-from .kernels import rbf_kernel
+from .kernels import rbf_cross_kernel, rbf_kernel
 from ..threads import threads_for_rows
 from .linalg import DTYPE, GPNumericalError, gaussian_logpdf, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
 from .objectives import leave_block_out, loo_from_inverse
@@ -163,11 +163,29 @@ class ExactGP(StandardisedRBFGP):
     data units, ``objective_value_`` (per-sample objective on the fitting subset), ``per_output_``.
     """
 
-    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True) -> "ExactGP":
-        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters."""
+    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True,
+            weights: np.ndarray | None = None) -> "ExactGP":
+        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters.
+        ``weights`` (m, N): what :meth:`solved_weights` returned for the same X, Y and ``hyper``
+        (``optimise=False``); a large fit (``per_output_``) then predicts its mean without
+        factorising, which is what costs O(N^3) per output."""
         _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
         self._condition(Xs, Ys)
+        if weights is not None and self.per_output_:
+            if np.shape(weights) != (Ys.shape[1], Ys.shape[0]):
+                raise ValueError(f"weights must be (m, N) = {(Ys.shape[1], Ys.shape[0])}, got {np.shape(weights)}")
+            self._alpha = list(torch.as_tensor(np.asarray(weights, dtype=np.float64), dtype=DTYPE, device=self.dev_))
         return self
+
+    def solved_weights(self) -> np.ndarray | None:
+        """``K^-1 y`` (m, N) per output in standardised units, or None while an output's are not
+        solved yet (a large fit solves them when first predicted)."""
+        check_is_fitted(self, "hyper_")
+        if not self.per_output_:
+            return self.alpha_.cpu().numpy()
+        if any(a is None for a in self._alpha):
+            return None
+        return torch.stack(self._alpha).cpu().numpy()
 
     def _condition(self, Xs: torch.Tensor, Ys: torch.Tensor) -> None:
         self.Xs_, self.Ys_ = Xs, Ys
@@ -232,21 +250,33 @@ class ExactGP(StandardisedRBFGP):
         ls, sf, sn = self.hyper_.to_torch(self.dev_)
         N = self.Xs_.shape[0]
         chunk_size = max(64, int(4e6 // N))
+        if not return_std:
+            return self._data_units(self._mean_per_output(Xq, chunk_size), None)
         means, vars_ = [], []
         for j in range(len(self._alpha)):
-            L = self._factor(j) if (return_std or self._alpha[j] is None) else None
+            L = self._factor(j)
             m_j, v_j = [], []
             for chunk in torch.split(Xq, chunk_size):
                 Ks = rbf_kernel(self.Xs_, chunk, ls[j:j + 1], sf[j:j + 1])[0]          # (N, Q)
                 m_j.append(Ks.T @ self._alpha[j])
-                if return_std:
-                    V = torch.linalg.solve_triangular(L, Ks, upper=False)
-                    v_j.append((sf[j] - (V * V).sum(0)).clamp_min(1e-12) + (sn[j] if include_noise else 0.0))
+                V = torch.linalg.solve_triangular(L, Ks, upper=False)
+                v_j.append((sf[j] - (V * V).sum(0)).clamp_min(1e-12) + (sn[j] if include_noise else 0.0))
             del L
             means.append(torch.cat(m_j))
-            if return_std:
-                vars_.append(torch.cat(v_j))
-        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1) if return_std else None)
+            vars_.append(torch.cat(v_j))
+        return self._data_units(torch.stack(means, 1), torch.stack(vars_, 1))
+
+    def _mean_per_output(self, Xq: torch.Tensor, chunk_size: int) -> torch.Tensor:
+        """Standardised posterior means (M, m) of a large fit, output by output, solving an output's
+        weights where they are not yet solved (:func:`rbf_cross_kernel`: the mean alone)."""
+        ls, sf, _ = self.hyper_.to_torch(self.dev_)
+        means = []
+        for j in range(len(self._alpha)):
+            if self._alpha[j] is None:
+                self._factor(j)  # caches the weights; the factor itself is not needed here
+            means.append(torch.cat([rbf_cross_kernel(chunk, self.Xs_, ls[j], sf[j]) @ self._alpha[j]
+                                    for chunk in torch.split(Xq, chunk_size)]))
+        return torch.stack(means, 1)
 
     def loo_predictive(self) -> tuple[np.ndarray, np.ndarray]:
         """Leave-one-out predictive mean and std (N, m) of the training outputs (closed form)."""

@@ -76,6 +76,10 @@ def _check_meta(meta: dict, path: Path) -> None:
     if kinds is not None and (not isinstance(kinds, list) or len(kinds) != K
                               or not all(k in ("exact", "sgpr", "subset") for k in kinds)):
         raise bad("gp_kinds", f"a list of {K} of 'exact', 'sgpr', 'subset'")
+    digests = meta.get("gp_weights_sha256")
+    if digests is not None and (not isinstance(digests, list) or len(digests) != K or not all(
+            d is None or isinstance(d, str) and len(d) == 64 for d in digests)):
+        raise bad("gp_weights_sha256", f"a list of {K} SHA-256 hex digests or nulls")
     if meta.get("mean_basis") not in (None, "payload", "rbd", "payload+friction", "rbd+friction"):
         raise bad("mean_basis", "'payload', 'rbd' (optionally '+friction') or null")
 
@@ -115,7 +119,8 @@ def read_model_arrays(model_dir: Path, meta: dict) -> dict:
     per mode k ``X_k`` (N, n_inputs) (n_inputs: 3n, plus n with ``friction_scale``, plus n for
     ``semiparametric: feature`` with a robot), ``Y_k`` (N, n), ``lengthscale_k`` (m, n_inputs),
     ``signal_var_k`` and ``noise_var_k`` (m,) positive (m = 1 or n), optional ``basis_coef_k``
-    (n, p) and ``inducing_k`` (M, n_inputs); optional ``friction_scale`` (n,) positive."""
+    (n, p), ``inducing_k`` (M, n_inputs) and ``weights_k`` (n, N) (:func:`store_gp_weights`);
+    optional ``friction_scale`` (n,) positive."""
     path = model_dir / "model.npz"
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -134,7 +139,8 @@ def read_model_arrays(model_dir: Path, meta: dict) -> dict:
             out[key] = _finite(raw, key, path, (len(ls),) if key != f"lengthscale_{k}" else ls.shape)
             if np.any(out[key] <= 0):
                 raise InputError(f"array '{key}' must be positive", file=path)
-        for key, shape in ((f"basis_coef_{k}", (n, None)), (f"inducing_{k}", (None, n_inputs))):
+        for key, shape in ((f"basis_coef_{k}", (n, None)), (f"inducing_{k}", (None, n_inputs)),
+                           (f"weights_{k}", (n, len(X)))):
             if key in raw:
                 out[key] = _finite(raw, key, path, shape)
     if "friction_scale" in raw:
@@ -156,3 +162,56 @@ def read_model_robot(spec: dict | None, meta_path: Path):
         return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))
     except InputError as exc:
         raise InputError(f"'robot' (the rigid-body model it was trained with): {exc}", file=meta_path) from None
+
+
+# The solved GP weights K^-1 y of a large exact GP: training solves them (its friction check
+# predicts every mode's mean), and re-solving them at load is the O(N^3) per output that made
+# `mmgp export` of a 10,000-sample model take minutes. They are stored with a digest of what they
+# were solved from, and used only where that still matches.
+_SOLVED_FROM = ("X", "Y", "lengthscale", "signal_var", "noise_var")
+
+
+def support_digest(arrays: dict, k: int) -> str:
+    """SHA-256 (hex) of mode ``k``'s support and hyperparameter arrays in ``arrays`` (as
+    :meth:`mmgp.MultimodalGP.save` writes them): names, shapes and float64 bytes."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in _SOLVED_FROM:
+        a = np.ascontiguousarray(arrays[f"{name}_{k}"], dtype="<f8")
+        h.update(f"{name}_{k}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def store_gp_weights(n_modes: int, gps: list | None, stored: list | None, arrays: dict) -> list:
+    """Put each mode's solved weights (m, N) into ``arrays`` as ``weights_k``: those of its fitted
+    GP ``gps[k]`` when that is a large exact GP that has solved them (``per_output_``; a small one
+    solves them in no time), or, for a mode whose GP is not built, ``stored[k]`` (the weights it
+    was loaded with). Returns the per-mode digests (None where no weights) for model.json's
+    ``gp_weights_sha256``."""
+    gps, stored = gps or [None] * n_modes, stored or [None] * n_modes
+    out = []
+    for k in range(n_modes):
+        gp = gps[k]
+        w = stored[k] if gp is None else (gp.solved_weights() if getattr(gp, "per_output_", False) else None)
+        if w is None:
+            out.append(None)
+            continue
+        arrays[f"weights_{k}"] = np.asarray(w, dtype=np.float64)
+        out.append(support_digest(arrays, k))
+    return out
+
+
+def read_gp_weights(meta: dict, arrays: dict) -> list:
+    """Per mode the stored weights (m, N) (``arrays`` from :func:`read_model_arrays`), or None where there are none or their digest no longer
+    matches the support and hyperparameters (the file was edited: the weights are solved again)."""
+    digests = meta.get("gp_weights_sha256") or [None] * int(meta["n_modes"])
+    out = []
+    for k, digest in enumerate(digests):
+        key = f"weights_{k}"
+        if digest is None or key not in arrays:
+            out.append(None)
+            continue
+        out.append(arrays[key] if digest == support_digest(arrays, k) else None)
+    return out
