@@ -145,6 +145,24 @@ def _joint_element(model, j: int, props: dict[str, np.ndarray], q0: np.ndarray) 
             f'springref="{props["springref"][iv]:.17g}"/>')
 
 
+def tendon_element(tendons: Sequence[dict]) -> str:
+    """MJCF ``<tendon>`` of coupled transmissions (empty without any): per dict a fixed tendon of
+    length q[joint] + ratio * q[coupled_joint] with MuJoCo's ``frictionloss`` (``tau_c``, N*m),
+    ``damping`` (``b``, N*m*s/rad) and ``armature`` (``inertia``, kg*m^2) on it: MuJoCo applies
+    the tendon's force f to the joints as J^T f with J = [1, ratio], and adds armature J J^T to the
+    mass matrix, the contract's ``coupled_transmission``."""
+    if not tendons:
+        return ""
+    lines = ["  <tendon>"]
+    for i, t in enumerate(tendons):
+        lines += [f'    <fixed name="coupling{i}" frictionloss="{t.get("tau_c", 0.0):.17g}" '
+                  f'damping="{t.get("b", 0.0):.17g}" armature="{t.get("inertia", 0.0):.17g}">',
+                  f'      <joint joint={quoteattr(t["joint"])} coef="1"/>',
+                  f'      <joint joint={quoteattr(t["coupled_joint"])} coef="{float(t["ratio"]):.17g}"/>',
+                  "    </fixed>"]
+    return "\n".join(lines + ["  </tendon>"])
+
+
 def _body_lines(model, j: int, depth: int, props, extras: dict[int, list[str]], children, q0) -> list[str]:
     """MJCF lines of the body of Pinocchio joint ``j`` and, nested, of its subtree. ``extras[j]``:
     elements (sites, payload) placed inside that body."""
@@ -165,7 +183,7 @@ def _body_lines(model, j: int, depth: int, props, extras: dict[int, list[str]], 
 
 def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, frictionloss=None, damping=None,
                armature=None, stiffness=None, springref=None, payload: dict | None = None,
-               timestep: float = 0.001, gravity: bool = True) -> str:
+               tendons: Sequence[dict] | None = None, timestep: float = 0.001, gravity: bool = True) -> str:
     """MJCF XML of a fixed-base robot, built from Pinocchio's parse of ``urdf_path``.
 
     The kinematic tree and link inertials are taken from Pinocchio (which merges links behind
@@ -180,6 +198,9 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
     ``payload={"link": name, "mass": kg, "com": [x, y, z]}`` (com in that link's frame, m; optional
     ``"inertia"``: 3 principal or 6 ``[xx, yy, zz, xy, xz, yz]`` values about the com in the link
     frame, default a solid 5 cm sphere) adds a body named ``"payload"`` welded to the link.
+
+    ``tendons``: coupled transmissions, dicts ``{"joint", "coupled_joint", "ratio", "tau_c", "b",
+    "inertia"}`` (:func:`tendon_element`).
 
     Each joint gets a body named after the URDF link it moves, a ``<site>`` for every URDF link
     frame (named after the link) and a plain torque motor named after the joint (gear 1, no
@@ -215,6 +236,7 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
     {world_payload}
 {chr(10).join(lines)}
   </worldbody>
+{tendon_element(tendons)}
   <actuator>
 {motors}
   </actuator>
