@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .._version import __version__
+from ..physics.mjcf import coupling_tendon
 
 #: finding -> {MuJoCo joint property: the finding's parameter}
 JOINT_PROPERTY = {"coulomb_friction": {"frictionloss": "tau_c"}, "load_dependent_friction": {"frictionloss": "tau_c"},
@@ -132,10 +133,9 @@ def _tendon(f: dict, c: Corrections) -> None:
         c.not_expressed.append(f"coupled_transmission on {f.get('joint')!r} with {other!r}: not joints of the "
                                "corrected model")
         return
-    name = f"coupled_{c.joint_names[k]}_{other}"
-    c.tendons.append({"name": name, "joints": [(c.joint_names[k], 1.0), (other, float(p["ratio"]))],
-                      "frictionloss": float(p.get("tau_c", 0.0)), "damping": float(p.get("b", 0.0)),
-                      "armature": float(p.get("inertia", 0.0))})
+    tendon = coupling_tendon(c.joint_names[k], p)
+    name = tendon["name"]
+    c.tendons.append(tendon)
     c.written.append(f"tendon {name}: {c.joint_names[k]} + {_g(p['ratio'])} x {other}, frictionloss "
                      f"{_g(p.get('tau_c', 0.0))} N*m, damping {_g(p.get('b', 0.0))} N*m*s/rad, armature "
                      f"{_g(p.get('inertia', 0.0))} kg*m^2 (coupled_transmission)")

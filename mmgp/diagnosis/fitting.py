@@ -166,7 +166,8 @@ def parameter_intervals(e, phys: PhysicsFit, params: dict) -> dict:
     """Percentile interval (``LEVEL``) of each of ``e``'s parameters over the bootstrap
     replicates of ``phys``: see :func:`intervals`."""
     pos = {phys.keys[i]: k for k, i in enumerate(phys.S)}
-    return intervals(e, [{a: float(b[pos[a]]) for a in e.atoms()} for b in phys.boot], params)
+    return {**intervals(e, [{a: float(b[pos[a]]) for a in e.atoms()} for b in phys.boot], params),
+            **e.searched_intervals()}
 
 
 def intervals(e, replicates: list, params: dict) -> dict:

@@ -60,6 +60,7 @@ from ..errors import InputError
 from ..progress import report
 from ..threads import limit_threads
 from . import stages as st
+from . import coupling
 from .fitting import effect_findings, fit_physics
 from .modes import near_switches
 from .reidentify import consistent_refit, model_torque, reidentify
@@ -252,11 +253,13 @@ class Diagnoser(BaseEstimator):
         em = st.run_learner(prob, self.em_modes, max_points=self.em_points, seed=self.seed) \
             if self.separate != "none" else None
         init = None if em is None else 1.0 - em["p_disturbed"]
+        prob, couplings, coupling_ev = self._couplings(prob, init)
         _stage("fitting the effects, re-identifying the rigid body")
         lib = st.fit_library(prob, prob.ctx, np.ones(len(prob.t), bool), relinearise=2, init=init)
         lib_rest = st.fit_library(st.without_body(prob), prob.ctx, np.ones(len(prob.t), bool), relinearise=2,
                                   init=init)
         start, reid = reidentify(prob, lib, lib_rest, alpha=self.alpha, min_gain=self.reid_min_gain)
+        start = start + couplings
         laps("reidentify_s")
         _stage("separating pushes")
         pushes = st.separate_pushes(prob, lib, self._selector(), method=self.separate, start=start, em=em, **push_kw)
@@ -284,15 +287,29 @@ class Diagnoser(BaseEstimator):
         for f in findings:
             if f["effect"] == "inertial_parameters":
                 f["evidence"].update(identifiability=rb_ev, reidentification=reid)
+            if f["effect"] == "coupled_transmission":
+                f["evidence"]["coupling_search"] = coupling_ev
         fit = self._stage_errors(prob, phys, use, denom, laps)
         if ms is not None:
             findings += mode_effect_findings(ms, phys.ctx)
             findings.append(mode_switch_finding(ms, phys.ctx, alpha=self.alpha, n_folds=self.mode_folds))
         if pushes.disturbed.any():
             findings.append(_disturbance(pushes, prob.t))
-        info = {"reidentification": reid, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
+        info = {"reidentification": reid, "coupling_search": coupling_ev, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
                                                       for e, p in dropped]}
         return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
+
+    def _couplings(self, prob, init):
+        """Coupled transmissions (``coupling``), searched first when the effects include them, on
+        the valid equations weighted by ``init`` (T,) (the learner's undisturbed probability;
+        None: 1). Returns (problem, couplings found, evidence)."""
+        from ..physics.effects import effect_classes
+
+        if not any(cls.own_family for cls in effect_classes(self.effects)) or prob.ctx.n < 2:
+            return prob, [], []
+        W = prob.M * (1.0 if init is None else np.asarray(init, dtype=np.float64)[:, None])
+        prob, found, ev = coupling.find_couplings(prob, W, st.nominal_weights(prob), alpha=self.alpha, seed=self.seed)
+        return coupling.motor_rest_masks(prob, found, rest_factor=self.rest_factor), found, ev
 
     def _select(self, prob, lib, use, start):
         """Forward selection from ``start`` on samples ``use``, nested extensions (load

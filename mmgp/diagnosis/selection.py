@@ -106,6 +106,8 @@ class FoldGrams:
         # per joint, weighted and contiguous in time: the fold sums below slice rows only
         Aw = np.ascontiguousarray(np.transpose(A * sw[:, :, None], (1, 0, 2)))
         rw = np.ascontiguousarray((r * sw).T)
+        # what :meth:`extended` adds columns to (references, not copies)
+        self._inputs = (A, r, use, folds, sw)
         self.Gall, self.call, _, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(use))
         self.Gte = np.zeros((K, n, P, P))
         self.cte = np.zeros((K, n, P))
@@ -121,6 +123,66 @@ class FoldGrams:
             excl[tr] = False
             Ge, ce, _, _ = _weighted_sums(Aw, rw, sw, np.flatnonzero(excl & use))
             self.Gtr[k], self.ctr[k] = self.Gall - Ge, self.call - ce
+
+    def extended(self, S: Sequence[int], B: np.ndarray) -> "FoldGrams":
+        """The statistics of atoms ``S`` followed by the columns of ``B`` (T, n, p), on the same
+        samples, weights and folds: ``S``'s blocks are taken from these sums, only ``B``'s products
+        are computed, on the joints where it is non-zero, every fold at once (a candidate searched
+        over a grid costs a few products, not a Gram of the whole library)."""
+        S, p = list(S), B.shape[2]
+        s = len(S)
+        out = FoldGrams.__new__(FoldGrams)
+        out.K, out.n, out.P, out._inputs = self.K, self.n, s + p, None
+        for name in ("Gall", "Gte", "Gtr"):
+            G = getattr(self, name)
+            new = np.zeros(G.shape[:-2] + (s + p, s + p))
+            new[..., :s, :s] = G[..., S, :][..., :, S]
+            setattr(out, name, new)
+        for name in ("call", "cte", "ctr"):
+            c = getattr(self, name)
+            new = np.zeros(c.shape[:-1] + (s + p,))
+            new[..., :s] = c[..., S]
+            setattr(out, name, new)
+        out.yte, out.nte = self.yte, self.nte
+        ind = self._indicators()  # (1 + 2K, T): all samples used, each test block, each excluded stretch
+        for j in np.flatnonzero(np.abs(B).max(axis=(0, 2)) > 0):
+            X = np.concatenate([self._weighted_base(j, S), B[:, j] * self._inputs[4][:, j, None]], axis=1)
+            Bw = X[:, s:]
+            # per sample, the new columns' products with every column and with the residual
+            Z = np.concatenate([Bw[:, :, None] * X[:, None, :], (Bw * self._weighted_r(j)[:, None])[:, :, None]], 2)
+            sums = (ind @ Z.reshape(len(X), -1)).reshape(len(ind), p, s + p + 1)
+            K = self.K
+            for G, c, blk in ((out.Gall[j][None], out.call[j][None], sums[:1]), (out.Gte[:, j], out.cte[:, j], sums[1:K + 1]),
+                              (out.Gtr[:, j], out.ctr[:, j], sums[:1] - sums[K + 1:])):
+                G[:, s:, :] = blk[:, :, :-1]
+                G[:, :, s:] = np.swapaxes(blk[:, :, :-1], 1, 2)
+                c[:, s:] = blk[:, :, -1]
+        return out
+
+    def _indicators(self) -> np.ndarray:
+        """(1 + 2K, T) 0/1 rows: the samples used, each fold's test block and each fold's
+        excluded stretch (test block and gaps), as :meth:`__init__` sums them."""
+        if not hasattr(self, "_ind"):
+            A, r, use, folds, sw = self._inputs
+            ind = np.zeros((1 + 2 * self.K, len(use)))
+            ind[0] = use
+            for k, (tr, te) in enumerate(folds):
+                ind[1 + k, te[use[te]]] = 1.0
+                ind[1 + self.K + k] = use
+                ind[1 + self.K + k, tr] = 0.0
+            self._ind, self._base = ind, {}
+        return self._ind
+
+    def _weighted_base(self, j: int, S: list) -> np.ndarray:
+        """(T, |S|) joint ``j``'s columns ``S``, weighted (kept for the next candidate on them)."""
+        key = (j, tuple(S))
+        if key not in self._base:
+            A, sw = self._inputs[0], self._inputs[4]
+            self._base = {key: A[:, j][:, S] * sw[:, j, None], **{k: v for k, v in self._base.items() if k[1] == key[1]}}
+        return self._base[key]
+
+    def _weighted_r(self, j: int) -> np.ndarray:
+        return self._inputs[1][:, j] * self._inputs[4][:, j]
 
     def normal_equations(self, S: Sequence[int], w: np.ndarray, fold: int | None = None):
         """Joint-weighted normal equations (G (|S|, |S|), c (|S|,)) of atoms ``S`` on all data

@@ -198,9 +198,10 @@ def nominal_weights(prob: Problem, use: np.ndarray | None = None) -> np.ndarray:
 
 
 def candidates(prob: Problem, start) -> list:
-    """The effects the selection may add: the library less what the model starts from and less
-    the rigid body (decided before the selection, by ``reidentify``)."""
-    return [e for e in prob.library if e not in start and e.scope != "model"]
+    """The effects the selection may add: the library less what the model starts from, less
+    the rigid body (decided before the selection, by ``reidentify``) and less the couplings
+    (searched in their own family, ``coupling``)."""
+    return [e for e in prob.library if e not in start and e.scope != "model" and not e.own_family]
 
 
 @dataclass(frozen=True)

@@ -66,7 +66,9 @@ class Effect:
     ``switchable`` (may take one of two values over the log: a mode-switch candidate),
     ``sensor`` (an artefact of the logged signals, not a torque the joint transmits: left out of
     the load that load-dependent friction scales with), ``own_joint`` (its columns act on joint
-    ``index``'s torque alone: its held-out gain is judged on that joint, ``selection.paired_gains``).
+    ``index``'s torque alone: its held-out gain is judged on that joint, ``selection.paired_gains``),
+    ``own_family`` (a nonlinear parameter is searched: chosen in a family of its own after the
+    others, ``mmgp.diagnosis.coupling``, never a forward-selection candidate).
 
     By default parameter i is the coefficient of atom i (``params``/``coefficients``); effects
     with another map override both.
@@ -83,6 +85,7 @@ class Effect:
     switchable: ClassVar[bool] = False
     sensor: ClassVar[bool] = False
     own_joint: ClassVar[bool] = False
+    own_family: ClassVar[bool] = False
 
     def __init_subclass__(cls, **declared):
         # a one-column effect is declared in its class statement: name=, label=, units=, kind=
@@ -132,6 +135,10 @@ class Effect:
     def relinearise(self, coef: dict, ctx: Context) -> Context:
         """The context with this effect's linearisation point moved to what ``coef`` says."""
         return ctx
+
+    def searched_intervals(self) -> dict:
+        """Parameter -> [low, high] of parameters searched outside the linear fit (fixed in its bootstrap)."""
+        return {}
 
     @classmethod
     def candidate_indices(cls, ctx: Context) -> list[int]:
@@ -311,6 +318,68 @@ class TorqueOffset(_JointColumnEffect, name="torque_offset", label="a torque-sen
 
     def values(self, ctx):
         return np.ones(ctx.T)
+
+
+class CoupledTransmission(Effect):
+    """A motor driving joint ``index`` (k) and turning with joint ``coupled`` (m) too (a coupled wrist), at w =
+    dq[k] + ratio dq[m]: its loss f = tau_c tanh(w / v_w) + b w + inertia dw/dt (N*m, >= 0) needs f more on k and
+    ratio f on m. (m, k, 1/c) gives the torques of (k, m, c) (tau_c |c|, b c^2, inertia c^2): reported with |ratio|
+    <= 1. The ratio is searched, not in the library; parameters zip with the atoms in ``units`` order, ratio last."""
+
+    name = "coupled_transmission"
+    label = "a coupled transmission"
+    units = {"tau_c": "N*m", "b": "N*m*s/rad", "inertia": "kg*m^2", "ratio": ""}
+    own_family = True
+    __hash__ = Effect.__hash__  # (equal effects share their index)
+
+    def __init__(self, index: int, coupled: int = 0, ratio: float = 1.0, ratio_interval=None):
+        super().__init__(index)
+        self.coupled, self.ratio, self.ratio_interval = int(coupled), float(ratio), ratio_interval
+
+    def __eq__(self, other):
+        return type(other) is type(self) and self.atoms() == other.atoms()
+
+    def canonical(self) -> "CoupledTransmission":
+        """The same torques with |ratio| <= 1 (the joint the motor turns most with is the driven one)."""
+        lo_hi = None if self.ratio_interval is None else sorted(1.0 / x for x in self.ratio_interval)
+        return self if abs(self.ratio) <= 1.0 else CoupledTransmission(self.coupled, self.index, 1 / self.ratio, lo_hi)
+
+    @classmethod
+    def candidates(cls, ctx, indices=None):
+        return []
+
+    def atoms(self):
+        return tuple((kind, self.index, self.coupled, self.ratio) for kind in ("ct_sign", "ct_dq", "ct_ddq"))
+
+    def columns(self, ctx):
+        k, m, c = self.index, self.coupled, self.ratio
+        w = ctx.dq[:, k] + c * ctx.dq[:, m]
+        cols = [_on_joint(ctx, k, x) for x in (np.tanh(w / np.hypot(ctx.v_s[k], c * ctx.v_s[m])), w,
+                                               ctx.ddq[:, k] + c * ctx.ddq[:, m])]
+        for col in cols:
+            col[:, m] = c * col[:, k]
+        return cols
+
+    @property
+    def nonneg(self):
+        return self.atoms()
+
+    def params(self, coef, cov):
+        p, s = super().params(coef, cov)
+        ci = self.ratio_interval
+        return {"ratio": self.ratio, **p}, {"ratio": np.nan if ci is None else (ci[1] - ci[0]) / 3.92, **s}
+
+    def searched_intervals(self):
+        return {} if self.ratio_interval is None else {"ratio": [float(x) for x in self.ratio_interval]}
+
+    def affected_joints(self, ctx):
+        return [self.index, self.coupled]
+
+    def report_params(self, params, ctx):
+        return {"coupled_joint": ctx.joint_names[self.coupled], **params}
+
+    def describe(self, params, std, ctx):
+        return f"{super().describe(params, std, ctx)} with joint {self.coupled} ({ctx.joint_names[self.coupled]})"
 
 
 class Payload(Effect):

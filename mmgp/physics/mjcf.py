@@ -217,6 +217,16 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
 """
 
 
+def coupling_tendon(joint: str, params: dict) -> dict:
+    """The :func:`build_mjcf` tendon of a ``coupled_transmission`` on ``joint`` (contract params
+    ``coupled_joint``, ``ratio``, ``tau_c``, ``b``, ``inertia``): a fixed tendon of length
+    q[joint] + ratio * q[coupled_joint] carrying the motor's friction loss, damping and armature."""
+    other = params["coupled_joint"]
+    return {"name": f"coupled_{joint}_{other}", "joints": [(joint, 1.0), (other, float(params["ratio"]))],
+            "frictionloss": float(params.get("tau_c", 0.0)), "damping": float(params.get("b", 0.0)),
+            "armature": float(params.get("inertia", 0.0))}
+
+
 def tendon_element(tendon: dict, joint_names: Sequence[str]) -> str:
     """MJCF ``<fixed>`` tendon (length ``sum coef_i q_i``) of ``tendon`` (see :func:`build_mjcf`);
     MuJoCo applies its friction loss, damping and armature along the tendon, on each joint

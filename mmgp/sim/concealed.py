@@ -3,7 +3,8 @@
 A case is a nominal URDF (shared by MuJoCo and the Pinocchio model the diagnosis uses) plus
 effects that only the MuJoCo "real robot" has: joint friction (``frictionloss``), viscous damping,
 armature, joint springs, extra payload bodies, load-dependent friction (``frictionloss`` set every
-step from the motor torque), intermittent external pushes and payload modes; encoder and torque
+step from the motor torque), coupled transmissions (a fixed tendon over two joints with friction,
+damping and armature), intermittent external pushes and payload modes; encoder and torque
 offsets and sensor noise are added to the logged signals. The truth is written in the contract's
 vocabulary (CONTRACT section 3), so a diagnosis can be scored pair by pair.
 
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..physics.mjcf import coupling_tendon
 from .excitation import push_schedule, sinusoid_reference
 from .mjcf import body_name, load_model, panda_urdf_path, reduced_pinocchio_model, robot_urdf_path, set_payload
 from .recording import Push, simulate
@@ -165,7 +167,8 @@ def _simulate(spec: dict, seed: int, physics: dict, offsets: dict):
     duration = int(spec.get("n_samples", 4000)) / rate
     rng = np.random.default_rng(seed)
     reference = _reference(robot, rng, urdf, joints, duration)
-    kw = {k: physics[k] for k in ("frictionloss", "damping", "armature", "stiffness", "springref") if k in physics}
+    kw = {k: physics[k] for k in ("frictionloss", "damping", "armature", "stiffness", "springref", "tendons")
+          if k in physics}
     payload = physics.get("payload")
     if spec.get("modes") and payload is None:
         payload = {"link": "panda_link7" if n > 1 else "lever", "mass": float(spec["modes"][0]), "com": [0.0, 0.0, 0.1]}
@@ -235,6 +238,8 @@ def make_case(spec: dict, seed: int = 0):
             offsets["torque"][j] = p["offset"]
         elif name == "payload":
             physics["payload"] = {"link": e["link"], "mass": p["mass"], "com": list(p["com"])}
+        elif name == "coupled_transmission":
+            physics.setdefault("tendons", []).append(coupling_tendon(e["joint"], p))
         else:
             raise ValueError(f"unknown effect {name}")
         t = {"effect": name, "params": p}
