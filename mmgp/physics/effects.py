@@ -178,8 +178,7 @@ class Effect:
         return params
 
     def describe(self, params: dict, std: dict, ctx: Context) -> str:
-        """The finding in words, e.g. "panda_joint4: Coulomb friction of 1.5 N*m" (joints by the
-        URDF's names, as everywhere in the report)."""
+        """The finding in words, e.g. "panda_joint4: Coulomb friction of 1.5 N*m" (URDF names)."""
         parts = [f"{format_value(params[k], std.get(k))}{(' ' + u) if u else ''}" for k, u in self.units.items()]
         if len(parts) == 1:
             what = f"{self.label} of {parts[0]}"
