@@ -21,7 +21,13 @@ is set beside, from the same run:
   outputs, standardised inputs): on all training rows it needs the (N, N, n_hyper) gradient
   tensor, 12,000^2 x 30 x 8 B = 35 GB for the WAM, which this machine (24 GB) cannot hold, so
   it is timed on ``--sk-sizes`` random rows (each fit bounded by ``--sk-limit`` seconds) and its
-  O(N^3) scaling is extrapolated to all rows.
+  O(N^3) scaling is extrapolated to all rows;
+* **two cheap peers** (``cheap_peers``): 5-nearest-neighbour regression on standardised
+  [q, dq, ddq] (how deterministic the torque is given the inputs) and least squares on
+  [1, q, dq, ddq, sin q, cos q].
+
+The published test rows lie along the training trajectory (see ``bench_real_gp_leakfree.py``,
+which also runs everything on a leak-free split of contiguous blocks).
 
 Run: ``python benchmarks/bench_real_gp.py [--datasets barrett,sarcos] [--sk-sizes 1000,2000]``
 (heavy: ~1 h for both on the shared 2-core machine).
@@ -48,6 +54,11 @@ PY = [sys.executable, "-m", "mmgp.cli"]
 def fmt(v) -> str:
     # three significant digits: on these logs several joints reach nMSE below 1e-4
     return "[" + " ".join(f"{x:.3g}" for x in v) + f"] mean {float(np.mean(v)):.3g}"
+
+
+def nmse(pred, tau):
+    """Normalised MSE per joint (n,): mean squared error / variance of the test torques tau (T, n)."""
+    return ((pred - tau) ** 2).mean(0) / tau.var(0)
 
 
 def command(args: list[str]) -> float:
@@ -83,6 +94,35 @@ def exact_peer(X, Y, Xq, hyper_rows: int, objective: str, seed: int = 0):
     return gp.predict(Xq, return_std=False), time.perf_counter() - t0
 
 
+def knn_peer(X, Y, Xq, k: int = 5):
+    """k-nearest-neighbour regression (scikit-learn, uniform weights) on inputs standardised by
+    the training rows: X (N, d) -> Y (N, m), mean at Xq (M, d). How deterministic the torque is
+    as a function of the inputs: a small nMSE means near neighbours carry the answer."""
+    from sklearn.neighbors import KNeighborsRegressor
+
+    mu, sd = X.mean(0), X.std(0)
+    sd[sd == 0] = 1.0
+    return KNeighborsRegressor(n_neighbors=k).fit((X - mu) / sd, Y).predict((Xq - mu) / sd)
+
+
+def linear_peer(q, dq, ddq, Y, qq, dqq, ddqq):
+    """Least squares on [1, q, dq, ddq, sin q, cos q] (T, n each) -> Y (T, m), mean at the query
+    states: the rigid-body terms are linear in the inertial parameters but not in q, so the
+    sines and cosines give it the gravity terms' shape."""
+    feats = lambda a, b, c: np.c_[np.ones(len(a)), a, b, c, np.sin(a), np.cos(a)]  # noqa: E731
+    coef, *_ = np.linalg.lstsq(feats(q, dq, ddq), Y, rcond=None)
+    return feats(qq, dqq, ddqq) @ coef
+
+
+def cheap_peers(tr, te) -> dict:
+    """The 5-nearest-neighbour and linear peers trained on log ``tr``, predicted at log ``te``'s
+    states: label -> (T_test, n) N*m."""
+    state = lambda log: np.c_[log.q, log.dq, log.ddq]  # noqa: E731
+    return {"5-nearest-neighbour (standardised q, dq, ddq)": knn_peer(state(tr), tr.tau, state(te)),
+            "linear on [1, q, dq, ddq, sin q, cos q]": linear_peer(tr.q, tr.dq, tr.ddq, tr.tau,
+                                                                   te.q, te.dq, te.ddq)}
+
+
 def sklearn_fit(X, Y, Xq, n: int, limit_s: float, seed: int = 0):
     """scikit-learn's exact GP on ``n`` random rows in a child process killed after ``limit_s``:
     (mean at Xq or None, seconds or None)."""
@@ -111,31 +151,44 @@ def sklearn_fit(X, Y, Xq, n: int, limit_s: float, seed: int = 0):
         return pickle.loads((Path(tmp) / "out.pkl").read_bytes())
 
 
-def run(name: str, logs: Path, work: Path, sk_sizes: list[int], sk_limit: float, peers: bool = True) -> None:
+def run_ours(train: Path, test: Path, work: Path, name: str) -> dict:
+    """``mmgp train TRAIN --modes 1 --no-disturbance`` then ``mmgp predict``, timed; the logs,
+    predicted mean and std (T_test, n) in N*m, the loaded model, its report and the seconds."""
     from mmgp.data.logs import read_log
     from mmgp.estimator import MultimodalGP
+    import pandas as pd
 
-    train, test = logs / f"ias_{name}_train.parquet", logs / f"ias_{name}_test.parquet"
     model_dir, pred = work / f"{name}_model", work / f"{name}_pred.parquet"
     t_train = command(["train", str(train), "--modes", "1", "--no-disturbance", "--out", str(model_dir), "--quiet"])
     t_pred = command(["predict", str(model_dir), str(test), "--out", str(pred)])
-    import pandas as pd
-
-    tr, te = read_log(train), read_log(test)
-    P = pd.read_parquet(pred)
+    tr, te, P = read_log(train), read_log(test), pd.read_parquet(pred)
     n = te.tau.shape[1]
-    ours = P[[f"tau_hat_{j}" for j in range(n)]].to_numpy()
-    nm = lambda p: ((p - te.tau) ** 2).mean(0) / te.tau.var(0)  # noqa: E731
-    model = MultimodalGP.load(model_dir)
-    rep = json.loads((model_dir / "report.json").read_text())
+    return dict(tr=tr, te=te, mean=P[[f"tau_hat_{j}" for j in range(n)]].to_numpy(),
+                std=P[[f"tau_std_{j}" for j in range(n)]].to_numpy(), model=MultimodalGP.load(model_dir),
+                report=json.loads((model_dir / "report.json").read_text()), t_train=t_train, t_pred=t_pred)
+
+
+def describe_ours(r: dict) -> str:
+    """The line that says what ``run_ours`` fitted and how long it took."""
+    model, rep = r["model"], r["report"]
+    return (f"ours (mmgp train + mmgp predict): GP {model.gp_kinds_[0]} on {len(model.support_Y_[0])} samples, "
+            f"hyperparameters on {model.fit_points} random samples, one run per joint; train {r['t_train']:.0f} s "
+            f"(fit {rep['timings']['total_s']:.0f} s, {rep['n_sweeps']} EM sweeps), predict {r['t_pred']:.0f} s, "
+            f"total {r['t_train'] + r['t_pred']:.0f} s")
+
+
+def run(name: str, logs: Path, work: Path, sk_sizes: list[int], sk_limit: float, peers: bool = True) -> None:
+    r = run_ours(logs / f"ias_{name}_train.parquet", logs / f"ias_{name}_test.parquet", work, name)
+    tr, te, ours, model = r["tr"], r["te"], r["mean"], r["model"]
+    t_train, t_pred = r["t_train"], r["t_pred"]
+    n = te.tau.shape[1]
+    nm = lambda p: nmse(p, te.tau)  # noqa: E731
     print(f"\n=== real {name}: train {len(tr.t)} rows, test {len(te.t)} rows, {n} joints")
-    print(f"ours (mmgp train + mmgp predict): GP {model.gp_kinds_[0]} on {len(model.support_Y_[0])} samples, "
-          f"hyperparameters on {model.fit_points} random samples, one run per joint; train {t_train:.0f} s "
-          f"(fit {rep['timings']['total_s']:.0f} s, {rep['n_sweeps']} EM sweeps), predict {t_pred:.0f} s, "
-          f"total {t_train + t_pred:.0f} s")
-    sd = P[[f"tau_std_{j}" for j in range(n)]].to_numpy()
-    cover = np.round((np.abs(ours - te.tau) < 1.96 * sd).mean(0), 3).tolist()
+    print(describe_ours(r))
+    cover = np.round((np.abs(ours - te.tau) < 1.96 * r["std"]).mean(0), 3).tolist()
     print(f"  nMSE {fmt(nm(ours))}; 95% band coverage {cover}")
+    for label, peer in cheap_peers(tr, te).items():
+        print(f"{label}: nMSE {fmt(nm(peer))}; ours <= peer on {int((nm(ours) <= nm(peer)).sum())}/{n} joints")
     X, Xq = inputs(tr, model.friction_scale_), inputs(te, model.friction_scale_)
     for label, rows, obj in (("ExactGP default: LOO on 1,000 random rows", 1000, "loo"),
                              ("marginal likelihood on 2,000 random rows", 2000, "marginal"))[: 2 * peers]:
