@@ -163,7 +163,9 @@ class DiagnosisResult:
         URDF, and the report says so)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        doc = dataclasses.replace(self, corrected=write_corrected(self.findings, self.urdf, self.joint_names, out))
+        # what was written of the corrected model stays with the result (the CLI prints its report)
+        self.corrected = write_corrected(self.findings, self.urdf, self.joint_names, out)
+        doc = self
         if self.plot_data is not None:
             doc = dataclasses.replace(doc, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
         (out / "findings.json").write_text(doc.to_json())
