@@ -185,9 +185,9 @@ class DiagnosisResult:
         from ..evaluation.html import HtmlReport
 
         page = HtmlReport("mmgp diagnose", subtitle=f"{self.info.get('n_samples')} samples analysed")
+        sentence = gp_sentence(self.fit, self.joint_names)
         page.section("Summary", "Held-out normalised MSE per joint (0 is perfect, 1 is the torque's own mean) and "
-                                "what was found on each joint." + (" " + gp_sentence(self.fit, self.joint_names)
-                                                                   if gp_sentence(self.fit, self.joint_names) else ""))
+                                "what was found on each joint." + (" " + sentence if sentence else ""))
         page.table(["joint"] + [label for _, label in COLUMNS] + ["found"],
                    [[r["joint"]] + [r[s] for s, _ in COLUMNS] + ["; ".join(r["found"]) or "nothing"]
                     for r in joint_rows(self.findings, self.fit, self.joint_names)], kind="summary")
