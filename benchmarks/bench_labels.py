@@ -20,7 +20,8 @@ Sets of logs (``--sets``):
   compensation, holds, firm pushes), some with the pushes taken out (``source-free``), and arms
   (Panda, UR5: payload modes, pushes of 5-40 N, push-free holds). ``source-tuning`` (seeds
   SOURCE_TUNING, SOURCE_FREE_TUNING) is developed on; ``issue29`` (ISSUE29_*, drawn once on
-  2026-11-27 from a system random source, committed before any tuning) is scored once at the end.
+  2026-11-27 from a system random source, committed before any tuning) is scored once at the end;
+  ``issue29b``: a second draw of its levers (ISSUE29B_*, 2026-11-28), with the same arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -108,6 +109,12 @@ ISSUE29_PANDA = (15643352, 11974287, 15111564)
 ISSUE29_UR5 = (11853609, 14874471, 13828903)
 ISSUE29_HOLDS_PANDA = (11296951,)
 ISSUE29_HOLDS_UR5 = (15263959,)
+# A second held-out draw of issue 29's levers (2026-11-28, a system random source), committed
+# before the hold-as-one-state change was tried: the first draw's levers were scored once
+# (2026-11-27) and looked at. ``issue29b``: these levers with the first draw's arms.
+ISSUE29B_SOURCE = (12774468, 17642758, 16040393, 18214691, 15832752, 18236567, 11015439, 17367152, 10641766,
+                   17430176, 16237718, 11985165)
+ISSUE29B_SOURCE_FREE = (14045556, 11956926, 16746419, 16901030)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -477,6 +484,11 @@ def main(argv=None) -> int:
         cases += family_cases(SOURCE_TUNING, "source", a.cache) + family_cases(SOURCE_FREE_TUNING, "source-free", a.cache)
     if "issue29" in sets:
         cases += (family_cases(ISSUE29_SOURCE, "source", a.cache) + family_cases(ISSUE29_SOURCE_FREE, "source-free", a.cache)
+                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
+                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
+                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
+    if "issue29b" in sets:
+        cases += (family_cases(ISSUE29B_SOURCE, "source", a.cache) + family_cases(ISSUE29B_SOURCE_FREE, "source-free", a.cache)
                   + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
                   + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
                   + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
