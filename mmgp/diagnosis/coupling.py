@@ -5,13 +5,18 @@ c dq[m]) has a nonlinear parameter, the ratio c, searched over a grid of |c| fro
 of 22%, both signs; a ratio under 0.2 is friction of joint k with a trace on m, which the data
 cannot tell from per-joint friction). Its friction on joint k and c times it on joint m looks
 partly like friction on each joint, so a coupling is tried *in their place*: the candidate model
-is the library less the rigid body (per-joint effects, payloads) less both joints' friction and
-armature plus the coupling,
+is the library less the rigid body (per-joint effects, payloads) less the friction and armature
+of both joints, or of one of them, plus the coupling. One joint may keep its own: a coupled wrist
+has a motor of its own on one joint besides the motor that turns with both (Staubli TX40: motor 5
+turns with joint 5 alone, motor 6 with joints 5 and 6), and a coupling tried in place of both
+joints' friction then has to carry motor 5's as well (on the real TX40 it came out at ratio 0.55,
+short of the family's level, against 1.0 with joint 5's own friction kept, 94% of the pair's
+held-out error). The candidates are joint pairs x ratios x these three replaced sets,
 and it must beat the per-joint effects on held-out blocks (one-sided signed-rank test on the
 joint-weighted sum, the weighted total not raised: ``selection.gain_p``) at the family-wise level
-``alpha`` over this family's own candidates (joint pairs x ratios, Bonferroni), by a material share
+``alpha`` over this family's own candidates (Bonferroni), by a material share
 of what is left on its two joints (:data:`MIN_PAIR_GAIN`). In a family of its
-own, the pairs x ratios neither dilute the per-joint effects' level nor meet a level set by the
+own, the candidates neither dilute the per-joint effects' level nor meet a level set by the
 library's size; per-joint friction that a coupling only mimics (friction on joints 2 and 3 of an
 arm) keeps its place. It is decided before the robust fit, the push scan and the selection, which
 would otherwise read a coupling as per-joint misfit: as outliers of the robust fit (a quarter of a
@@ -80,11 +85,21 @@ def _fit(g: FoldGrams, keys, S, e, ctx, w) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def try_pair(prob, ctx, grams: FoldGrams, chosen, keys, k: int, m: int, w, cur) -> list[Tried]:
-    """Every ratio of the grid for joints (k, m): the model ``chosen`` less both joints' per-joint
-    friction and armature, plus the coupling; ``cur`` (K, n) the model's held-out errors. The
-    coupling's magnitudes must be non-negative (the rest is the library, a nuisance model here)."""
+    """Every ratio of the grid for joints (k, m) and every replaced set (both joints, k alone, m
+    alone): the model ``chosen`` less those joints' per-joint friction and armature, plus the
+    coupling; ``cur`` (K, n) the model's held-out errors. The coupling's magnitudes must be
+    non-negative (the rest is the library, a nuisance model here)."""
+    out = []
+    for replaced in ((k, m), (k,), (m,)):
+        out += _try_ratios(prob, ctx, grams, chosen, keys, (k, m), replaced, w, cur)
+    return out
+
+
+def _try_ratios(prob, ctx, grams: FoldGrams, chosen, keys, pair, replaced, w, cur) -> list[Tried]:
+    """:func:`try_pair` for one replaced set of joints."""
+    k, m = pair
     index = {a: i for i, a in enumerate(keys)}
-    base = [e for e in chosen if not (e.name in REPLACED and e.index in (k, m))]
+    base = [e for e in chosen if not (e.name in REPLACED and e.index in replaced)]
     S = atom_indices(base, index)
     out = []
     for c in np.concatenate([RATIO_MAGNITUDES, -RATIO_MAGNITUDES]):

@@ -50,6 +50,33 @@ def classification_figures(pred: pd.DataFrame, truth: pd.DataFrame) -> dict:
     return out
 
 
+# FIGAROH's held-out figures (figaroh-examples, docs/development/log-cholesky-dataset-validation-2026-10-02.md,
+# Pinocchio 3.7): aggregate torque RMS error on the validation rows (TIAGo mixes N and N*m), with
+# their training / validation rows of each recording. None: the fit failed (TIAGo's SDP projection).
+FIGAROH_FIGURES = {
+    "tx40": {"nominal": 10.364936, "ols": 5.298469, "ols_sdp": 4.470204, "log_cholesky": 4.986377},
+    "tiago": {"nominal": 3.865181, "ols": 1.518097, "ols_sdp": None, "log_cholesky": 1.410331},
+}
+FIGAROH_ROWS = {"tx40": ((0, 24750), (29250, 45000)), "tiago": ((921, 4149), (4736, 6791))}
+
+
+def figaroh_samples(n: int, *, max_samples: int = 240, edge: int = 20) -> np.ndarray:
+    """Indices of the samples FIGAROH scores in a processed partition of ``n`` samples: at most
+    ``max_samples`` equally spaced (truncated to integers, repeats dropped), ``edge`` left out at
+    each end."""
+    if n < 2 * edge + 1:
+        raise ValueError(f"a partition of {n} samples has none left between its {edge}-sample edges")
+    return np.unique(np.linspace(edge, n - edge - 1, min(max_samples, n - 2 * edge)).astype(int))
+
+
+def aggregate_rmse(tau: np.ndarray, tau_pred: np.ndarray) -> float:
+    """FIGAROH's "held-out aggregate torque error": the root mean square of ``tau_pred - tau``
+    (T, n) over every joint and sample together, in the torques' unit (N*m; N on a prismatic joint)."""
+    tau, tau_pred = (np.asarray(x, dtype=np.float64) for x in (tau, tau_pred))
+    if tau.shape != tau_pred.shape:
+        raise ValueError(f"tau {tau.shape} and tau_pred {tau_pred.shape} must have the same shape")
+    return float(np.sqrt(np.mean((tau_pred - tau) ** 2)))
+
 def normalised_mse(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
     """Per-column MSE divided by the variance of the truth: (T, n) -> (n,). 1.0 = predicting the mean."""
     y_true = np.asarray(y_true, dtype=np.float64).reshape(len(y_true), -1)

@@ -133,20 +133,50 @@ def _joint_element(model, j: int, props: dict[str, np.ndarray], q0: np.ndarray) 
             f'springref="{props["springref"][iv]:.17g}"/>')
 
 
-def _body_lines(model, j: int, depth: int, props, extras: dict[int, list[str]], children, q0) -> list[str]:
+def loadable_inertia(I: np.ndarray, mass: float) -> tuple[np.ndarray, str | None]:
+    """(3, 3) rotational inertia about the centre of mass (kg*m^2) that MuJoCo accepts, and what
+    was changed in words (None: nothing). A URDF's may be a point mass (all zero: FIGAROH's TX40
+    link_6) or miss the triangle inequality A + B >= C that every rigid body's principal moments
+    meet (CAD rounding: FIGAROH's TIAGo arm_1_link by 2e-4); MuJoCo refuses both. Principal
+    moments are floored at ``mass`` x (0.1 mm)^2 (a point mass's spread, torques below 1e-8 of
+    its own), then a remaining shortfall C - A - B is closed by the least change in the
+    Frobenius norm: a third of it on each moment (A, B up, C down)."""
+    I = 0.5 * (np.asarray(I, dtype=np.float64) + np.asarray(I, dtype=np.float64).T)
+    w, V = np.linalg.eigh(I)
+    floor = max(float(mass), 1e-9) * 1e-8
+    notes = []
+    if w[0] < floor:
+        notes.append(f"principal moments {_fmt(w)} kg*m^2 floored at {floor:.3g}")
+        w = np.maximum(w, floor)
+    short = float(w[2] - w[0] - w[1])
+    if short > 0.0:
+        notes.append(f"principal moments miss the triangle inequality by {short:.3g} kg*m^2: each moved by a "
+                     "third of it")
+        # a hair past equality: MuJoCo's own eigen-decomposition of the written matrix must not fall short
+        d = short / 3.0 + 1e-12 * float(w[2])
+        w = w + np.array([d, d, -d])
+    return ((V * w) @ V.T, "; ".join(notes)) if notes else (I, None)
+
+
+def _body_lines(model, j: int, depth: int, props, extras: dict[int, list[str]], children, q0,
+                notes: list) -> list[str]:
     """MJCF lines of the body of Pinocchio joint ``j`` and, nested, of its subtree. ``extras[j]``:
-    elements (sites, payload) placed inside that body."""
+    elements (sites, payload) placed inside that body; a body whose inertia had to be changed to
+    load (:func:`loadable_inertia`) is named in ``notes``."""
     ind = "  " * depth
     M = model.jointPlacements[j]
     Y = model.inertias[j]
+    inertia, note = loadable_inertia(Y.inertia, float(Y.mass))
+    if note:
+        notes.append(f"body {body_name(model, j)} (MuJoCo refuses the URDF's inertia): {note}")
     lines = [f'{ind}<body name={quoteattr(body_name(model, j))} pos="{_fmt(M.translation)}" '
              f'quat="{_fmt(_quat_wxyz(M.rotation))}">',
              f"{ind}  {_joint_element(model, j, props, q0)}",
              f'{ind}  <inertial pos="{_fmt(Y.lever)}" mass="{max(float(Y.mass), 1e-9):.17g}" '
-             f'fullinertia="{_full_inertia(Y.inertia)}"/>']
+             f'fullinertia="{_full_inertia(inertia)}"/>']
     lines += [f"{ind}  {e}" for e in extras[j]]
     for c in children[j]:
-        lines += _body_lines(model, c, depth + 1, props, extras, children, q0)
+        lines += _body_lines(model, c, depth + 1, props, extras, children, q0, notes)
     lines.append(f"{ind}</body>")
     return lines
 
@@ -169,6 +199,9 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
     ``payload={"link": name, "mass": kg, "com": [x, y, z]}`` (com in that link's frame, m; optional
     ``"inertia"``: 3 principal or 6 ``[xx, yy, zz, xy, xz, yz]`` values about the com in the link
     frame, default a solid 5 cm sphere) adds a body named ``"payload"`` welded to the link.
+
+    A link inertia MuJoCo refuses (a point mass, moments that miss the triangle inequality) is
+    moved the least that it loads (:func:`loadable_inertia`) and named in the comment.
 
     ``tendons``: fixed tendons, each ``{"name", "joints": [(joint name, coef), ...], "frictionloss"
     (N*m), "damping" (N*m*s/rad), "armature" (kg*m^2)}`` (:func:`tendon_element`). ``comment``: text
@@ -199,7 +232,9 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
         else:
             extras[j].append(xml)
     q0 = pin.neutral(model)
-    lines = [ln for c in children[0] for ln in _body_lines(model, c, 2, props, extras, children, q0)]
+    notes: list[str] = []
+    lines = [ln for c in children[0] for ln in _body_lines(model, c, 2, props, extras, children, q0, notes)]
+    comment = "\n".join([comment] * bool(comment) + notes) or None
     motors = "\n".join(f'    <motor name={quoteattr(nm)} joint={quoteattr(nm)} gear="1"/>' for nm in model.names[1:])
     names = list(model.names[1:])
     tendon = "  <tendon>\n" + "".join(tendon_element(t, names) for t in tendons) + "  </tendon>\n" if tendons else ""
