@@ -91,6 +91,7 @@ class Emissions:
     vars: list
     loglik: np.ndarray
     bands: list | None = None
+    once: np.ndarray | None = None    # (T, S) log-likelihoods with every sample counted fully
 
 
 @dataclass
@@ -276,6 +277,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
     K = n_modes
     S = 2 * K if disturbance else K
     loglik = np.empty((T, S))
+    once = np.empty((T, S))
     mode_of = states % K
     dist = states >= K if disturbance else np.zeros(T, bool)
     mus, vars_, bands = [], [], []
@@ -297,23 +299,28 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
             centre, half, bvar = fitter.friction_band(gp, coef, support)
             bands.append(half)
             lu = at_rest_logpdf(lu, Y - centre, half, bvar * params.calib[k], fitter.rest)
+        lu_once = lu
         if fitter.hold is not None:
             lu = lu * fitter.hold
         loglik[:, k] = lu.sum(1)
+        once[:, k] = lu_once.sum(1)
         if disturbance:
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
             # loaded joint from the scale mixture (pushed_logpdf). Pushed at rest, the joint
             # would still hold its band; modelling that (the band blurred by Sigma_d) was
             # measured worse (tuning lever1010 0.933 -> 0.860 unperturbed correct).
             lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
+            lp_once = lp.copy()
             if fitter.hold is not None:
                 lp = lp * fitter.hold
             if fitter.muted is not None:
                 lp[:, fitter.muted] = lu[:, fitter.muted]     # no vote either way
+                lp_once[:, fitter.muted] = lu_once[:, fitter.muted]
             loglik[:, K + k] = push_loglik(lu, lp)
+            once[:, K + k] = push_loglik(lu_once, lp_once)
     if fitter.rest is not None:
         params.stuck = [stuck_samples(fitter.rest, half, var) for half, var in zip(bands, vars_)]
-    return Emissions(mus, vars_, loglik, bands if fitter.rest is not None else None)
+    return Emissions(mus, vars_, loglik, bands if fitter.rest is not None else None, once)
 
 
 # Scales of Sigma_d in the pushed component of a multi-joint log (see :func:`pushed_logpdf`).

@@ -276,7 +276,7 @@ class MultimodalSEM:
                               prior=prior, rest=fitter.rest)
             # Kept for diagnostics (what the last sweep saw); references, no copies.
             self.last_sweep_ = {"means": em.means, "vars": em.vars, "bands": em.bands,
-                                "loglik": em.loglik, "calib": params.calib.copy(),
+                                "loglik": em.loglik, "once": em.once, "calib": params.calib.copy(),
                                 "sigma_d": np.array(params.sigma_d), "states": states}
             n_dist = int((states >= K).sum()) if self.disturbance else 0
             rec = SweepRecord(sweep, step.log_joint, step.log_marginal, changed, n_dist,
@@ -407,6 +407,8 @@ class MultimodalSEM:
         self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
         if self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0:
             p_dist = np.zeros(T)
+        if self.disturbance and fitter.hold is not None:
+            p_dist = self._holds_on_their_own(fitter, p_mode.argmax(1), p_dist, params)
         p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
         if self.disturbance:
             # After the shortest-push rule (its blips are model error, part of the scan's
@@ -469,6 +471,28 @@ class MultimodalSEM:
         self.scan_flagged_ = int(flags.sum())
         p_scan = scan_probability(stat, T / window * z.shape[1])
         return np.where(flags, np.maximum(p_dist, p_scan), p_dist)
+
+    def _holds_on_their_own(self, fitter: ModeFitter, modes: np.ndarray, p_dist: np.ndarray,
+                            params: SweepParams) -> np.ndarray:
+        """p_disturbed (T,) where the whole robot rests (every joint's rest weight > 0.5): each
+        sample's own evidence (its mode's band or model against a push, the sample counted
+        whole) at the chain's stationary share of pushes p_enter / (p_enter + p_leave), in place
+        of the chain's marginal; elsewhere ``p_dist``.
+
+        Why: held still by friction, the robot shows one torque for the whole hold, so the
+        chain counts a hold once (:func:`.mstep.hold_weights`), and so weakly that the stay prior
+        carried a neighbouring push's state into it, a sample at a time (issue 29's levers:
+        every false alarm within 1.5 s of a push, most in the hold before its onset). A stuck
+        joint's torque is evidence of a push only where it leaves the band, and that is
+        decided sample by sample: a push that builds up inside a hold is flagged from where it
+        leaves the band on."""
+        K = self.n_modes
+        once = self.last_sweep_["once"]
+        T = len(p_dist)
+        still = (fitter.rest > 0.5).all(1)
+        pi = params.p_enter / max(params.p_enter + params.p_leave, 1e-300)
+        log_odds = once[np.arange(T), K + modes] - once[np.arange(T), modes] + math.log(max(pi, 1e-300) / max(1 - pi, 1e-300))
+        return np.where(still, 1.0 / (1.0 + np.exp(-np.clip(log_odds, -700, 700))), p_dist)
 
     def _disturbance_gain(self, params: SweepParams, starts) -> float:
         """log p(Y) of the last sweep's chain minus that of the same chain without disturbance
