@@ -185,6 +185,26 @@ def test_control_case_has_no_finding(cases, tmp_path):
     assert "Nothing is missing" in (tmp_path / "report.md").read_text()
 
 
+def test_the_learner_runs_once_per_residual_and_modes(cases, monkeypatch):
+    """diagnose runs the multimodal learner (an EM over the whole log, the costliest stage)
+    once for a given residual and number of modes: the push gate reuses the run the robust
+    fit started from."""
+    import hashlib
+
+    from mmgp.diagnosis import separation
+
+    calls, real = [], separation.em_separate
+
+    def counted(resid, *a, n_modes, **k):
+        calls.append((n_modes, hashlib.sha256(np.ascontiguousarray(resid).tobytes()).hexdigest()))
+        return real(resid, *a, n_modes=n_modes, **k)
+
+    monkeypatch.setattr(separation, "em_separate", counted)
+    res, _ = _run(cases["actuator_pushes_coulomb"])
+    assert "MultimodalSEM" in res.info_["separation"]["method"]      # the gate ran the learner
+    assert len(calls) >= 1 and len(set(calls)) == len(calls)
+
+
 def test_pushes_are_separated_before_fitting_friction(cases):
     """1-DOF lever with Coulomb friction and pushes (20% of the log): the pushes are flagged
     where the simulator applied them, and friction is fitted on the rest."""

@@ -264,7 +264,6 @@ def separate_pushes(prob: Problem, lib: LibraryFit, selector, *, method: str, pu
     e0 = prob.r - (lib.A[:, :, S0] @ g0.fit(S0, w0) if S0 else 0.0)
     disturbed, scan = sep.scan_disturbances(e0, prob.t, f_c=prob.f_c, valid=prob.M_scan > 0, alpha=push_alpha)
     info = {**info, **scan}
-    em = None
     if method == "auto" and disturbed.any():
         # as a gate the learner can only drop spans: with none scanned it is not needed
         em = run_learner(prob, em_modes, max_points=em_points, seed=seed, resid=resid, previous=em)
