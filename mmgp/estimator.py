@@ -45,8 +45,8 @@ class MultimodalGP(BaseEstimator):
     gets a mode and a disturbance label. Units: rad (m), rad/s, rad/s^2, N*m (N), s.
 
     One mode without the disturbance mode has no labels to learn: the EM is skipped and one GP
-    is fitted on every sample, its hyperparameters by ``objective`` on ``fit_points`` random
-    samples (:class:`mmgp.gp.exact.ExactGP`'s procedure). How the GPs scale: ``gp_method``.
+    is fitted on every sample, its hyperparameters on ``fit_points`` random samples
+    (:class:`mmgp.gp.exact.ExactGP`'s procedure; with times, blocks left out, see ``objective``). How the GPs scale: ``gp_method``.
 
     Parameters (every training setting; the ``train:`` section of a settings file holds the same
     keys, see :func:`mmgp.config.load_settings`)
@@ -152,8 +152,8 @@ class MultimodalGP(BaseEstimator):
     calibrate : bool, default True
         Scale each mode's predictive variance per joint by its undisturbed mean z^2 (>= 1).
     objective : "loo" or "marginal", default "loo"
-        GP hyperparameter objective of standalone fits: one mode without disturbance, and the
-        EM without a time axis (the sweeps otherwise leave time blocks out).
+        GP hyperparameter objective without times (with them: leave-block-out, sweeps by
+        ``block_s``, one mode alone by :func:`mmgp.models.mstep.honest_block_s`).
     ard : bool, default True
         One lengthscale per input.
     device : str, default "cpu"

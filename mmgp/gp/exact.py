@@ -58,7 +58,7 @@ class StandardisedRBFGP(BaseEstimator):
     def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
                  coarse_fit_points: int = 300, independent_outputs: bool = False, refine_rounds: int = 1,
-                 shared_starts: bool = False):
+                 shared_starts: bool = False, block_s: float = 0.0):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -70,10 +70,12 @@ class StandardisedRBFGP(BaseEstimator):
         self.independent_outputs = independent_outputs
         self.refine_rounds = refine_rounds
         self.shared_starts = shared_starts
+        self.block_s = block_s
 
-    def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool):
+    def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool, t: np.ndarray | None = None):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
-        ``hyper_`` (given, default or optimised) and ``objective_value_``."""
+        ``hyper_`` (given, default or optimised; by leave-block-out with times ``t`` (N,) s and
+        ``block_s`` > 0) and ``objective_value_``."""
         X, Y, self._vector_output = check_xy(X, Y)
         self.dev_ = resolve_device(self.device)
         self.x_scaler_ = Standardiser().fit(X)
@@ -83,7 +85,9 @@ class StandardisedRBFGP(BaseEstimator):
         init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
         self.objective_value_ = float("nan")
         if optimise:
-            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self)
+            if t is not None and np.shape(t) != (X.shape[0],):
+                raise ValueError(f"t must be (N,) = ({X.shape[0]},), got {np.shape(t)}")
+            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self, t=t)
         self.hyper_ = init
         self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
         self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_
@@ -143,6 +147,9 @@ class ExactGP(StandardisedRBFGP):
         cost (Barrett WAM, 21 inputs: same held-out error as 60 full iterations, ~3x faster).
         0 disables it.
     noise_floor : smallest noise variance, as a fraction of each output's variance.
+    block_s : with sample times given to ``fit`` (``t``), hyperparameters maximise the
+        leave-time-block-out log predictive, blocks of this many seconds
+        (:func:`mmgp.gp.objectives.leave_block_out`), instead of ``objective``; 0 (default): ``objective``.
     independent_outputs : one optimiser run per output (see
         :func:`mmgp.gp.hyper.optimise_hyper`); default False, one run over all outputs.
     refine_rounds : after a coarse climb, up to this many refinement runs of ``max_iter // 3``
@@ -164,12 +171,13 @@ class ExactGP(StandardisedRBFGP):
     """
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True,
-            weights: np.ndarray | None = None) -> "ExactGP":
+            weights: np.ndarray | None = None, t: np.ndarray | None = None) -> "ExactGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters.
+        ``t`` (N,) s, increasing: sample times for the leave-block-out objective (``block_s``).
         ``weights`` (m, N): what :meth:`solved_weights` returned for the same X, Y and ``hyper``
         (``optimise=False``); a large fit (``per_output_``) then predicts its mean without
         factorising, which is what costs O(N^3) per output."""
-        _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
+        _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise, t)
         self._condition(Xs, Ys)
         if weights is not None and self.per_output_:
             if np.shape(weights) != (Ys.shape[1], Ys.shape[0]):

@@ -19,7 +19,7 @@ import torch
 from .kernels import rbf_kernel, rbf_log_param_grads
 from ..threads import threads_for_rows
 from .linalg import DTYPE, robust_cholesky
-from .objectives import Objective, get_objective
+from .objectives import Objective, get_objective, leave_block_out
 
 
 @dataclass
@@ -295,30 +295,36 @@ def restart_from_best_output(parts: list[tuple[Hyper, float]],
     return out
 
 
-def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: bool, est) -> tuple[Hyper, float]:
+def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: bool, est,
+                      t: np.ndarray | None = None) -> tuple[Hyper, float]:
     """ExactGP's hyperparameter procedure, shared with the scalable GP.
 
     Xs (N, d), Ys (N, m) standardised; ``est`` supplies the settings (max_fit_points,
     coarse_fit_points, max_iter, objective, ard, noise_floor, seed, independent_outputs,
-    refine_rounds, shared_starts). Cold starts (``warm`` False) climb on a small coarse subset
-    first, then refine on the fitting subset (in rounds, and from the best output's optimum when
-    ``shared_starts``).
+    refine_rounds, shared_starts, block_s). Cold starts (``warm`` False) climb on a small coarse
+    subset first, then refine on the fitting subset (in rounds, and from the best output's
+    optimum when ``shared_starts``). With sample times ``t`` (N,) s, increasing, and
+    ``est.block_s`` > 0, every subset is scored by leave-block-out on its own times
+    (:func:`mmgp.gp.objectives.leave_block_out`) instead of ``est.objective``.
     """
     rng = np.random.default_rng(est.seed)
     N = Xs.shape[0]
     idx = np.arange(N)
     if N > est.max_fit_points:
         idx = np.sort(rng.choice(N, est.max_fit_points, replace=False))
-    opts = dict(objective=est.objective, ard=est.ard, noise_floor=est.noise_floor,
-                independent=bool(getattr(est, "independent_outputs", False)))
+    block_s = float(getattr(est, "block_s", 0.0) or 0.0)
+    objective = ((lambda rows: leave_block_out(np.asarray(t)[rows], block_s)) if t is not None and block_s > 0
+                 else (lambda rows: est.objective))
+    opts = dict(ard=est.ard, noise_floor=est.noise_floor, independent=bool(getattr(est, "independent_outputs", False)))
     n_c = int(est.coarse_fit_points or 0)
     max_iter, rounds = est.max_iter, 1
     if not warm and n_c > 0 and len(idx) > 2 * n_c:
         coarse = np.sort(rng.choice(idx, n_c, replace=False))
-        init, _ = optimise_hyper(Xs[coarse], Ys[coarse], init, max_iter=est.max_iter, **opts)
+        init, _ = optimise_hyper(Xs[coarse], Ys[coarse], init, objective=objective(coarse), max_iter=est.max_iter,
+                                 **opts)
         max_iter, rounds = max(10, est.max_iter // 3), int(getattr(est, "refine_rounds", 1))
         opts["shared_starts"] = bool(getattr(est, "shared_starts", False))
-    return optimise_hyper(Xs[idx], Ys[idx], init, max_iter=max_iter, rounds=rounds, **opts)
+    return optimise_hyper(Xs[idx], Ys[idx], init, objective=objective(idx), max_iter=max_iter, rounds=rounds, **opts)
 
 
 def default_hyper(d: int, m: int, noise: float = 0.1) -> Hyper:

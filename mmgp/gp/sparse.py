@@ -93,24 +93,24 @@ class SparseGP(StandardisedRBFGP):
                  max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
                  coarse_fit_points: int = 300, independent_outputs: bool = False, n_inducing: int = 1000,
                  method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = 1,
-                 shared_starts: bool = False):
+                 shared_starts: bool = False, block_s: float = 0.0):
         super().__init__(ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
                          noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points,
                          independent_outputs=independent_outputs, refine_rounds=refine_rounds,
-                         shared_starts=shared_starts)
+                         shared_starts=shared_starts, block_s=block_s)
         self.method = method
         self.n_subset = n_subset
         self.n_inducing = n_inducing
 
     def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True,
-            inducing: np.ndarray | None = None) -> "SparseGP":
+            inducing: np.ndarray | None = None, t: np.ndarray | None = None) -> "SparseGP":
         """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes
         hyperparameters; ``inducing`` (M, d) in data units replaces the k-means inputs (e.g. a
-        saved model's ``inducing_``)."""
+        saved model's ``inducing_``); ``t`` (N,) s as in :meth:`ExactGP.fit`."""
         if self.method not in ("sgpr", "subset"):
             raise ValueError(f"method must be 'sgpr' or 'subset', got {self.method!r}")
         # Same procedure as ExactGP: the exact GP's hyperparameters on a subset.
-        X, Y, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise)
+        X, Y, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise, t)
         if self.method == "subset":
             rng = np.random.default_rng(self.seed + 1)
             self.subset_ = np.sort(rng.choice(len(X), min(self.n_subset, len(X)), replace=False))

@@ -13,6 +13,7 @@ from typing import Sequence
 import numpy as np
 from scipy.special import log_ndtr, logsumexp
 
+from ..data.folds import decorrelation_time
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper
 from ..gp.linalg import gaussian_logpdf
@@ -21,6 +22,25 @@ from ..gp.windowed import windowed_predictive
 from .estep import stretches
 from .hmm import _transition_counts
 from .robust import fit_basis_coefficients, fit_shared_coefficients
+
+
+#: leave-block-out blocks of the final GP span this many correlation times of its inputs
+#: (:func:`honest_block_s`)
+BLOCK_CORRELATION_TIMES = 4.0
+
+
+def honest_block_s(t: np.ndarray, X: np.ndarray) -> float:
+    """Block length (s) of the final GP's leave-block-out hyperparameter objective for inputs X
+    (T, d) sampled at increasing times ``t`` (T,) s: :data:`BLOCK_CORRELATION_TIMES` correlation
+    times of the inputs (:func:`mmgp.data.folds.decorrelation_time`).
+
+    Why: in a densely sampled log a sample's neighbours in time are near-copies of it, so
+    leave-one-out (and blocks shorter than the correlation time) scores interpolation along the
+    trajectory and picks near-zero noise and short lengthscales that swing off it. Samples
+    within one correlation time of a block's edge still have such neighbours outside it; with
+    four correlation times at least half of every block is further than that from every sample
+    the block is predicted from."""
+    return BLOCK_CORRELATION_TIMES * decorrelation_time(t, X)
 
 
 def evenly_spaced(idx: np.ndarray, m: int) -> np.ndarray:
@@ -145,13 +165,18 @@ class ModeFitter:
         or SGPR by :func:`mmgp.gp.sparse.make_gp` (``gp_method``). ``hyper`` None: the GP fits
         its own (its standard procedure on ``fit_points`` random members, one optimiser run
         per output, refined while the climb still gains: up to 3 x ``fit_iter // 3`` iterations,
-        and once more from the best output's optimum, see :func:`mmgp.gp.hyper.restart_from_best_output`)."""
+        and once more from the best output's optimum, see :func:`mmgp.gp.hyper.restart_from_best_output`),
+        with a time axis by leave-block-out on blocks of :func:`honest_block_s` (the GP's ``block_s``)."""
         s = self.settings
         kw = dict(max_fit_points=s.fit_points, max_iter=s.fit_iter, seed=0, n_inducing=s.n_inducing,
                   n_subset=s.n_inducing, independent_outputs=True, refine_rounds=3, shared_starts=True)
         kw.update(s.gp_kwargs)
+        t = None
+        if hyper is None and self.t_axis is not None:
+            t = self.t_axis[members]
+            kw["block_s"] = honest_block_s(t, self.X[members])
         gp = make_gp(len(members), method=s.gp_method, **kw)
-        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None)
+        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None, t=t)
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``."""
