@@ -95,20 +95,24 @@ def block_loo_log_predictive(K: torch.Tensor, y: torch.Tensor, idx: np.ndarray, 
     member indices padded with 0 and ``valid`` (n_blocks, B) marking real members.
     """
     L, _ = robust_cholesky(K)
+    _, _, _, vt, _, _, r, var = _block_parts(L, y, idx, valid)
+    return (gaussian_logpdf(r, 0.0, var) * vt).sum((-1, -2))
+
+
+def _block_parts(L: torch.Tensor, y: torch.Tensor, idx: np.ndarray, valid: np.ndarray):
+    """The blocks' pieces from L = chol(K): P = K^-1, alpha = P y, the index and validity
+    tensors, C = P_WW^-1 per block (padding: identity), alpha_W (zero on padding), r = C alpha_W
+    (y_W less its leave-block-out mean) and var = diag C."""
     P = torch.cholesky_inverse(L)
     alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
-    it = torch.as_tensor(idx, device=K.device)
-    vt = torch.as_tensor(valid, dtype=K.dtype, device=K.device)
-    B = idx.shape[1]
+    it = torch.as_tensor(idx, device=L.device)
+    vt = torch.as_tensor(valid, dtype=L.dtype, device=L.device)
     mask2 = vt[:, :, None] * vt[:, None, :]
-    eye = torch.eye(B, dtype=K.dtype, device=K.device)
-    Pbb = P[:, it[:, :, None], it[:, None, :]] * mask2 + eye * (1 - mask2)    # (m, nb, B, B)
-    Lb = torch.linalg.cholesky(Pbb)
-    C = torch.cholesky_inverse(Lb)                                            # P_BB^-1
-    r = (C @ (alpha[:, it] * vt).unsqueeze(-1)).squeeze(-1)                  # y_B - mean_B
-    var = C.diagonal(dim1=-2, dim2=-1)
-    ll = gaussian_logpdf(r, 0.0, var)
-    return (ll * vt).sum((-1, -2))
+    eye = torch.eye(idx.shape[1], dtype=L.dtype, device=L.device)
+    C = torch.cholesky_inverse(torch.linalg.cholesky(P[:, it[:, :, None], it[:, None, :]] * mask2 + eye * (1 - mask2)))
+    aW = alpha[:, it] * vt                                                   # (m, nb, B)
+    r = (C @ aW.unsqueeze(-1)).squeeze(-1)
+    return P, alpha, it, vt, C, aW, r, C.diagonal(dim1=-2, dim2=-1)
 
 
 def block_loo_value_and_dK(L: torch.Tensor, y: torch.Tensor, idx: np.ndarray,
@@ -124,17 +128,7 @@ def block_loo_value_and_dK(L: torch.Tensor, y: torch.Tensor, idx: np.ndarray,
     :func:`loo_value_and_dK`, against backpropagating through two factorisations.
     """
     m, N = y.shape
-    P = torch.cholesky_inverse(L)
-    alpha = (P @ y.unsqueeze(-1)).squeeze(-1)
-    it = torch.as_tensor(idx, device=L.device)
-    vt = torch.as_tensor(valid, dtype=L.dtype, device=L.device)
-    B = idx.shape[1]
-    mask2 = vt[:, :, None] * vt[:, None, :]
-    eye = torch.eye(B, dtype=L.dtype, device=L.device)
-    C = torch.cholesky_inverse(torch.linalg.cholesky(P[:, it[:, :, None], it[:, None, :]] * mask2 + eye * (1 - mask2)))
-    aW = alpha[:, it] * vt                                                   # (m, nb, B)
-    r = (C @ aW.unsqueeze(-1)).squeeze(-1)
-    var = C.diagonal(dim1=-2, dim2=-1)
+    P, alpha, it, vt, C, aW, r, var = _block_parts(L, y, idx, valid)
     F = (gaussian_logpdf(r, 0.0, var) * vt).sum((-1, -2))
     a = (0.5 * r ** 2 / var ** 2 - 0.5 / var) * vt                         # padding: 0
     b = -r / var * vt
