@@ -77,6 +77,7 @@ def aggregate_rmse(tau: np.ndarray, tau_pred: np.ndarray) -> float:
         raise ValueError(f"tau {tau.shape} and tau_pred {tau_pred.shape} must have the same shape")
     return float(np.sqrt(np.mean((tau_pred - tau) ** 2)))
 
+
 def normalised_mse(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
     """Per-column MSE divided by the variance of the truth: (T, n) -> (n,). 1.0 = predicting the mean."""
     y_true = np.asarray(y_true, dtype=np.float64).reshape(len(y_true), -1)

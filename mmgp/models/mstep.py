@@ -111,7 +111,7 @@ class Emissions:
     vars: list
     loglik: np.ndarray
     bands: list | None = None
-    once: np.ndarray | None = None    # (T, S) log-likelihoods with every sample counted fully
+    once: np.ndarray | None = None    # (T, S) with every sample counted fully; None: no hold weights (= loglik)
 
 
 @dataclass
@@ -302,7 +302,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
     K = n_modes
     S = 2 * K if disturbance else K
     loglik = np.empty((T, S))
-    once = np.empty((T, S))
+    once = np.empty((T, S)) if fitter.hold is not None else None
     mode_of = states % K
     dist = states >= K if disturbance else np.zeros(T, bool)
     mus, vars_, bands = [], [], []
@@ -324,28 +324,35 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
             centre, half, bvar = fitter.friction_band(gp, coef, support)
             bands.append(half)
             lu = at_rest_logpdf(lu, Y - centre, half, bvar * params.calib[k], fitter.rest)
-        lu_once = lu
-        if fitter.hold is not None:
-            lu = lu * fitter.hold
-        loglik[:, k] = lu.sum(1)
-        once[:, k] = lu_once.sum(1)
+        lp = None
         if disturbance:
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
             # loaded joint from the scale mixture (pushed_logpdf). Pushed at rest, the joint
             # would still hold its band; modelling that (the band blurred by Sigma_d) was
             # measured worse (tuning lever1010 0.933 -> 0.860 unperturbed correct).
             lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
-            lp_once = lp.copy()
-            if fitter.hold is not None:
-                lp = lp * fitter.hold
-            if fitter.muted is not None:
-                lp[:, fitter.muted] = lu[:, fitter.muted]     # no vote either way
-                lp_once[:, fitter.muted] = lu_once[:, fitter.muted]
-            loglik[:, K + k] = push_loglik(lu, lp)
-            once[:, K + k] = push_loglik(lu_once, lp_once)
+        cols = [k, K + k] if disturbance else [k]
+        loglik[:, cols] = _mode_columns(lu, lp, fitter.hold, fitter.muted)
+        if once is not None:
+            once[:, cols] = _mode_columns(lu, lp, None, fitter.muted)
     if fitter.rest is not None:
         params.stuck = [stuck_samples(fitter.rest, half, var) for half, var in zip(bands, vars_)]
     return Emissions(mus, vars_, loglik, bands if fitter.rest is not None else None, once)
+
+
+def _mode_columns(lu: np.ndarray, lp: np.ndarray | None, weight: np.ndarray | None,
+                  muted: np.ndarray | None) -> np.ndarray:
+    """A mode's undisturbed and (with ``lp``) pushed log-likelihood columns (T, 1 or 2) from
+    each joint's densities lu, lp (T, n), weighted by ``weight`` (T, n) (None: 1); the
+    ``muted`` joints (n,) bool vote neither way."""
+    if weight is not None:
+        lu = lu * weight
+    if lp is None:
+        return lu.sum(1)[:, None]
+    lp = lp * weight if weight is not None else lp.copy()
+    if muted is not None:
+        lp[:, muted] = lu[:, muted]
+    return np.stack([lu.sum(1), push_loglik(lu, lp)], axis=1)
 
 
 # Scales of Sigma_d in the pushed component of a multi-joint log (see :func:`pushed_logpdf`).
