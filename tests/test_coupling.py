@@ -132,3 +132,26 @@ def test_a_payload_is_no_shoulder_coupling():
     (pl,) = [x for x in f if x["effect"] == "payload"]
     assert pl["params"]["mass"] == pytest.approx(3.0, rel=0.1)
 
+
+def test_a_coupled_motor_beside_the_coupled_joints_own_motor():
+    """A coupled wrist as the Staubli TX40's: a motor turning with wrist_1 + 0.8 wrist_2 (a MuJoCo
+    fixed tendon with frictionloss, damping, armature) and wrist_2's own motor, whose friction
+    outweighs the coupled motor's there as on the TX40 (Coulomb 1.24 times, viscous 2.07 times:
+    the TX40's joint 5 against its motor 6). The coupling is found with its ratio and friction
+    within 10%, and wrist_2's own friction beside it within 10%: a coupling tried only in place
+    of both joints' friction has to carry wrist_2's own as well, and loses to per-joint friction."""
+    f = _diagnose([{"effect": "coupled_transmission", "joint": "wrist_1_joint",
+                    "params": {"coupled_joint": "wrist_2_joint", "ratio": 0.8, "tau_c": 0.5, "b": 0.3,
+                               "inertia": 0.02}},
+                   {"effect": "coulomb_friction", "joint": "wrist_2_joint", "params": {"tau_c": 0.62}},
+                   {"effect": "viscous_friction", "joint": "wrist_2_joint", "params": {"b": 0.62}}])
+    (ct,) = [x for x in f if x["effect"] == "coupled_transmission"]
+    p = ct["params"]
+    assert (ct["joint"], p["coupled_joint"]) == ("wrist_1_joint", "wrist_2_joint")
+    assert p["ratio"] == pytest.approx(0.8, rel=0.1)
+    assert p["tau_c"] == pytest.approx(0.5, rel=0.1)
+    assert p["b"] == pytest.approx(0.3, rel=0.1)
+    own = {x["effect"]: x["params"] for x in f if x.get("joint") == "wrist_2_joint"}
+    assert own["coulomb_friction"]["tau_c"] == pytest.approx(0.62, rel=0.1)
+    assert own["viscous_friction"]["b"] == pytest.approx(0.62, rel=0.1)
+    assert not [x for x in f if x.get("joint") == "wrist_1_joint" and x["effect"] != "coupled_transmission"]
