@@ -60,14 +60,16 @@ def test_columns_are_mujocos_fixed_tendon(ratio):
     assert abs(e.canonical().ratio) <= 1.0
 
 
-def test_extended_sums_equal_a_direct_computation():
+@pytest.mark.parametrize("T,scattered", [(600, True), (3000, False)])
+def test_extended_sums_equal_a_direct_computation(T, scattered):
     """FoldGrams.extended (atoms S of a library plus new columns, only their products computed)
-    equals FoldGrams built from those columns directly."""
+    equals FoldGrams built from those columns directly; with samples left out here and there
+    (sums over samples) and in one stretch (sums over runs of samples)."""
     rng = np.random.default_rng(3)
-    T, n = 600, 4
+    n = 4
     A = rng.standard_normal((T, n, 6))
     r = rng.standard_normal((T, n))
-    use = rng.uniform(size=T) > 0.1
+    use = rng.uniform(size=T) > 0.1 if scattered else ~((np.arange(T) > 0.3 * T) & (np.arange(T) < 0.4 * T))
     W = rng.uniform(size=(T, n))
     folds = time_block_folds(T, 6, gap=4)
     B = np.zeros((T, n, 3))
@@ -78,6 +80,32 @@ def test_extended_sums_equal_a_direct_computation():
         want = FoldGrams(np.concatenate([A[:, :, S], B], axis=2), r, use, folds, W=W)
         for name in ("Gall", "call", "Gte", "cte", "Gtr", "ctr", "yte", "nte"):
             np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("T,scattered", [(600, True), (3000, False)])
+def test_bordered_fits_equal_a_direct_computation(T, scattered):
+    """The search's fits and held-out errors of a subset of a library's atoms plus new columns
+    (coupling.Bordered: the library's sums weighted once, the new columns' products per candidate)
+    equal those of FoldGrams built from those columns directly."""
+    from mmgp.diagnosis.coupling import Bordered
+
+    rng = np.random.default_rng(4)
+    n = 4
+    A = rng.standard_normal((T, n, 6))
+    r = rng.standard_normal((T, n))
+    use = rng.uniform(size=T) > 0.1 if scattered else np.arange(T) > 0.2 * T
+    W = rng.uniform(size=(T, n))
+    w = rng.uniform(0.5, 2.0, n)
+    folds = time_block_folds(T, 6, gap=4)
+    B = np.zeros((T, n, 3))
+    B[:, 1], B[:, 3] = rng.standard_normal((T, 3)), rng.standard_normal((T, 3))
+    sc = Bordered(FoldGrams(A, r, use, folds, W=W), [5, 0, 2, 3], w)
+    prod = sc.products(B)
+    for at in ([0, 1, 2, 3], [1, 3], []):
+        want = FoldGrams(np.concatenate([A[:, :, [[5, 0, 2, 3][i] for i in at]], B], axis=2), r, use, folds, W=W)
+        P = list(range(want.P))
+        np.testing.assert_allclose(sc.fit(prod, at), want.fit(P, w), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(sc.cv_errors(prod, at), want.cv_errors(P, w), rtol=1e-8, atol=1e-10)
 
 
 def _diagnose(effects):
@@ -131,6 +159,7 @@ def test_a_payload_is_no_shoulder_coupling():
     assert not [x for x in f if x["effect"] == "coupled_transmission"]
     (pl,) = [x for x in f if x["effect"] == "payload"]
     assert pl["params"]["mass"] == pytest.approx(3.0, rel=0.1)
+
 
 
 def test_a_coupled_motor_beside_the_coupled_joints_own_motor():

@@ -71,8 +71,12 @@ def pairs(chosen, done=()) -> list[tuple[int, int]]:
 
 
 def columns(prob, ctx, e) -> np.ndarray:
-    """(T, n, 3) low-passed columns of ``e``, as the library's."""
-    return prob.lowpass(np.stack(e.columns(ctx), axis=2))
+    """(T, n, 3) low-passed columns of ``e``, as the library's (the filter acts on each channel
+    alone: only the coupling's two joints, the others' columns are zero)."""
+    B = np.stack(e.columns(ctx), axis=2)
+    j = e.affected_joints(ctx)
+    B[:, j] = prob.lowpass(B[:, j])
+    return B
 
 
 def _fit(g: FoldGrams, keys, S, e, ctx, w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -84,33 +88,81 @@ def _fit(g: FoldGrams, keys, S, e, ctx, w) -> tuple[np.ndarray, np.ndarray, np.n
     return cone_gram_fit(G, c, nonneg), G, c
 
 
+class Bordered:
+    """The joint-weighted fits and held-out errors of the atoms ``S`` of ``grams`` (or a subset of
+    them) plus a candidate's columns, for many candidates: ``S``'s sums weighted over the joints
+    once, each candidate's products with them computed on its own joints only
+    (``FoldGrams.border_sums``); the numbers of ``grams.extended(S, B)``'s ``fit`` and ``cv_errors``
+    without copying the library's sums for every candidate. ``w`` (n,) joint weights."""
+
+    def __init__(self, grams: FoldGrams, S, w: np.ndarray):
+        self.g, self.S, self.w = grams, list(S), w
+        S = self.S
+        self.Gall = np.einsum("j,jpq->pq", w, grams.Gall[:, S][:, :, S])
+        self.call = np.einsum("j,jp->p", w, grams.call[:, S])
+        self.Gtr = np.einsum("j,kjpq->kpq", w, grams.Gtr[:, :, S][:, :, :, S])
+        self.ctr = np.einsum("j,kjp->kp", w, grams.ctr[:, :, S])
+        self.Gte, self.cte = grams.Gte[:, :, S][:, :, :, S], grams.cte[:, :, S]
+
+    def products(self, B: np.ndarray) -> dict:
+        """Joint -> ``border_sums`` of the new columns ``B`` (T, n, p), on the joints where they act."""
+        return {j: self.g.border_sums(j, self.S, B[:, j]) for j in np.flatnonzero(B.any(axis=(0, 2)))}
+
+    def _system(self, G0, c0, blk, at):
+        """Normal equations (..., a + p, a + p), (..., a + p) of atoms ``at`` (places in S) plus the
+        new columns: ``G0``, ``c0`` the atoms' own, ``blk`` (..., p, |S| + p + 1) the new columns' sums."""
+        s, a, p = len(self.S), len(at), blk.shape[-2]
+        cols = list(at) + list(range(s, s + p))
+        G = np.zeros(blk.shape[:-2] + (a + p, a + p))
+        G[..., :a, :a] = G0[..., at, :][..., :, at]
+        G[..., a:, :] = blk[..., cols]
+        G[..., :a, a:] = np.swapaxes(blk[..., at], -1, -2)
+        return G, np.concatenate([c0[..., at], blk[..., -1]], axis=-1)
+
+    def fit(self, prod: dict, at) -> np.ndarray:
+        """(a + p,) coefficients on all data of atoms ``at`` and the new columns (``prod``)."""
+        blk = sum(self.w[j] * x[0] for j, x in prod.items())
+        return solve_gram(*self._system(self.Gall, self.call, blk, at))
+
+    def cv_errors(self, prod: dict, at) -> np.ndarray:
+        """Held-out sums of squared errors (K, n) of atoms ``at`` and the new columns (``prod``)."""
+        K, s, a = self.g.K, len(self.S), len(at)
+        blk = sum(self.w[j] * (x[0] - x[K + 1:]) for j, x in prod.items())
+        th = solve_gram(*self._system(self.Gtr, self.ctr, blk, at))
+        ts, tn = np.zeros((K, s)), th[:, a:]
+        ts[:, at] = th[:, :a]
+        err = self.g.yte + ((self.Gte @ ts[:, None, :, None])[..., 0] * ts[:, None] - 2 * self.cte * ts[:, None]).sum(-1)
+        for j, x in prod.items():
+            te = x[1:K + 1]
+            err[:, j] += (np.einsum("kp,kpq,kq->k", tn, te[:, :, s:-1], tn) - 2 * np.einsum("kp,kp->k", tn, te[:, :, -1])
+                          + 2 * np.einsum("kp,kpq,kq->k", tn, te[:, :, :s], ts))
+        return err
+
+
 def try_pair(prob, ctx, grams: FoldGrams, chosen, keys, k: int, m: int, w, cur) -> list[Tried]:
     """Every ratio of the grid for joints (k, m) and every replaced set (both joints, k alone, m
     alone): the model ``chosen`` less those joints' per-joint friction and armature, plus the
     coupling; ``cur`` (K, n) the model's held-out errors. The coupling's magnitudes must be
     non-negative (the rest is the library, a nuisance model here)."""
-    out = []
-    for replaced in ((k, m), (k,), (m,)):
-        out += _try_ratios(prob, ctx, grams, chosen, keys, (k, m), replaced, w, cur)
-    return out
-
-
-def _try_ratios(prob, ctx, grams: FoldGrams, chosen, keys, pair, replaced, w, cur) -> list[Tried]:
-    """:func:`try_pair` for one replaced set of joints."""
-    k, m = pair
     index = {a: i for i, a in enumerate(keys)}
-    base = [e for e in chosen if not (e.name in REPLACED and e.index in replaced)]
-    S = atom_indices(base, index)
-    out = []
+    S_all = atom_indices(chosen, index)
+    variants = []  # (kept effects, their atoms, the atoms' places in S_all)
+    for replaced in ((k, m), (k,), (m,)):
+        base = [e for e in chosen if not (e.name in REPLACED and e.index in replaced)]
+        S = atom_indices(base, index)
+        variants.append((base, S, [S_all.index(i) for i in S]))
+    # the three variants' sums are blocks of one: the coupling's products computed once per ratio
+    sc = Bordered(grams, S_all, w)
+    out = [[] for _ in variants]  # per replaced set, every ratio
     for c in np.concatenate([RATIO_MAGNITUDES, -RATIO_MAGNITUDES]):
         e = CoupledTransmission(k, m, c)
-        g = grams.extended(S, columns(prob, ctx, e))
-        P = list(range(g.P))
-        coef = dict(zip([keys[i] for i in S] + list(e.atoms()), g.fit(P, w)))
-        ej = g.cv_errors(P, w)
-        ok = e.admissible(coef, ctx)
-        out.append(Tried(e, base, S, ej, gain_p(e, cur, ej, w) if ok else 1.0))
-    return out
+        prod = sc.products(columns(prob, ctx, e))
+        for (base, S, at), tried in zip(variants, out):
+            coef = dict(zip([keys[i] for i in S] + list(e.atoms()), sc.fit(prod, at)))
+            ej = sc.cv_errors(prod, at)
+            ok = e.admissible(coef, ctx)
+            tried.append(Tried(e, base, S, ej, gain_p(e, cur, ej, w) if ok else 1.0))
+    return [t for tried in out for t in tried]
 
 
 def refine(prob, ctx, grams: FoldGrams, best: Tried, keys, w, *, seed: int = 0) -> CoupledTransmission:
