@@ -60,14 +60,16 @@ def test_columns_are_mujocos_fixed_tendon(ratio):
     assert abs(e.canonical().ratio) <= 1.0
 
 
-def test_extended_sums_equal_a_direct_computation():
+@pytest.mark.parametrize("T,scattered", [(600, True), (3000, False)])
+def test_extended_sums_equal_a_direct_computation(T, scattered):
     """FoldGrams.extended (atoms S of a library plus new columns, only their products computed)
-    equals FoldGrams built from those columns directly."""
+    equals FoldGrams built from those columns directly; with samples left out here and there
+    (sums over samples) and in one stretch (sums over runs of samples)."""
     rng = np.random.default_rng(3)
-    T, n = 600, 4
+    n = 4
     A = rng.standard_normal((T, n, 6))
     r = rng.standard_normal((T, n))
-    use = rng.uniform(size=T) > 0.1
+    use = rng.uniform(size=T) > 0.1 if scattered else ~((np.arange(T) > 0.3 * T) & (np.arange(T) < 0.4 * T))
     W = rng.uniform(size=(T, n))
     folds = time_block_folds(T, 6, gap=4)
     B = np.zeros((T, n, 3))
@@ -80,8 +82,34 @@ def test_extended_sums_equal_a_direct_computation():
             np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-10, atol=1e-10)
 
 
-def _diagnose(effects):
-    spec = {"name": "ur5_wrist", "robot": "ur5", "effects": effects, "n_samples": 2000}
+@pytest.mark.parametrize("T,scattered", [(600, True), (3000, False)])
+def test_bordered_fits_equal_a_direct_computation(T, scattered):
+    """The search's fits and held-out errors of a subset of a library's atoms plus new columns
+    (coupling.Bordered: the library's sums weighted once, the new columns' products per candidate)
+    equal those of FoldGrams built from those columns directly."""
+    from mmgp.diagnosis.coupling import Bordered
+
+    rng = np.random.default_rng(4)
+    n = 4
+    A = rng.standard_normal((T, n, 6))
+    r = rng.standard_normal((T, n))
+    use = rng.uniform(size=T) > 0.1 if scattered else np.arange(T) > 0.2 * T
+    W = rng.uniform(size=(T, n))
+    w = rng.uniform(0.5, 2.0, n)
+    folds = time_block_folds(T, 6, gap=4)
+    B = np.zeros((T, n, 3))
+    B[:, 1], B[:, 3] = rng.standard_normal((T, 3)), rng.standard_normal((T, 3))
+    sc = Bordered(FoldGrams(A, r, use, folds, W=W), [5, 0, 2, 3], w)
+    prod = sc.products(B)
+    for at in ([0, 1, 2, 3], [1, 3], []):
+        want = FoldGrams(np.concatenate([A[:, :, [[5, 0, 2, 3][i] for i in at]], B], axis=2), r, use, folds, W=W)
+        P = list(range(want.P))
+        np.testing.assert_allclose(sc.fit(prod, at), want.fit(P, w), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(sc.cv_errors(prod, at), want.cv_errors(P, w), rtol=1e-8, atol=1e-10)
+
+
+def _diagnose(effects, n_samples=2000):
+    spec = {"name": "ur5_wrist", "robot": "ur5", "effects": effects, "n_samples": n_samples}
     rec, truth = C.make_case(spec, seed=2)
     # the coupling is searched before the pushes and modes: those stages are left out for time
     d = Diagnoser(gp=False, plots=False, separate="none", modes=False)
@@ -132,3 +160,40 @@ def test_a_payload_is_no_shoulder_coupling():
     (pl,) = [x for x in f if x["effect"] == "payload"]
     assert pl["params"]["mass"] == pytest.approx(3.0, rel=0.1)
 
+
+
+
+def test_a_payloads_rotational_inertia_is_no_coupling():
+    """A 3 kg payload on a UR5's last link with an extended body's rotational inertia (0.03, 0.03,
+    0.01 kg*m^2 about its centre of mass; the diagnosis's payload is a point mass), nothing
+    coupled: no coupling. An inertia term on two joints at a fixed ratio fits much of what the
+    point mass leaves (the best candidate beats the per-joint effects at the family's level), but
+    a motor dissipates, and its friction columns add nothing here."""
+    f = _diagnose([{"effect": "payload", "link": "wrist_3_link",
+                    "params": {"mass": 3.0, "com": [0.0, 0.1, 0.02], "inertia": [0.03, 0.03, 0.01]}}], n_samples=6000)
+    assert not [x for x in f if x["effect"] == "coupled_transmission"]
+    (pl,) = [x for x in f if x["effect"] == "payload"]
+    assert pl["params"]["mass"] == pytest.approx(3.0, rel=0.1)
+
+def test_a_coupled_motor_beside_the_coupled_joints_own_motor():
+    """A coupled wrist as the Staubli TX40's: a motor turning with wrist_1 + 0.8 wrist_2 (a MuJoCo
+    fixed tendon with frictionloss, damping, armature) and wrist_2's own motor, whose friction
+    outweighs the coupled motor's there as on the TX40 (Coulomb 1.24 times, viscous 2.07 times:
+    the TX40's joint 5 against its motor 6). The coupling is found with its ratio and friction
+    within 10%, and wrist_2's own friction beside it within 10%: a coupling tried only in place
+    of both joints' friction has to carry wrist_2's own as well, and loses to per-joint friction."""
+    f = _diagnose([{"effect": "coupled_transmission", "joint": "wrist_1_joint",
+                    "params": {"coupled_joint": "wrist_2_joint", "ratio": 0.8, "tau_c": 0.5, "b": 0.3,
+                               "inertia": 0.02}},
+                   {"effect": "coulomb_friction", "joint": "wrist_2_joint", "params": {"tau_c": 0.62}},
+                   {"effect": "viscous_friction", "joint": "wrist_2_joint", "params": {"b": 0.62}}])
+    (ct,) = [x for x in f if x["effect"] == "coupled_transmission"]
+    p = ct["params"]
+    assert (ct["joint"], p["coupled_joint"]) == ("wrist_1_joint", "wrist_2_joint")
+    assert p["ratio"] == pytest.approx(0.8, rel=0.1)
+    assert p["tau_c"] == pytest.approx(0.5, rel=0.1)
+    assert p["b"] == pytest.approx(0.3, rel=0.1)
+    own = {x["effect"]: x["params"] for x in f if x.get("joint") == "wrist_2_joint"}
+    assert own["coulomb_friction"]["tau_c"] == pytest.approx(0.62, rel=0.1)
+    assert own["viscous_friction"]["b"] == pytest.approx(0.62, rel=0.1)
+    assert not [x for x in f if x.get("joint") == "wrist_1_joint" and x["effect"] != "coupled_transmission"]

@@ -144,14 +144,9 @@ class FoldGrams:
             new[..., :s] = c[..., S]
             setattr(out, name, new)
         out.yte, out.nte = self.yte, self.nte
-        ind = self._indicators()  # (1 + 2K, T): all samples used, each test block, each excluded stretch
-        for j in np.flatnonzero(np.abs(B).max(axis=(0, 2)) > 0):
-            X = np.concatenate([self._weighted_base(j, S), B[:, j] * self._inputs[4][:, j, None]], axis=1)
-            Bw = X[:, s:]
-            # per sample, the new columns' products with every column and with the residual
-            Z = np.concatenate([Bw[:, :, None] * X[:, None, :], (Bw * self._weighted_r(j)[:, None])[:, :, None]], 2)
-            sums = (ind @ Z.reshape(len(X), -1)).reshape(len(ind), p, s + p + 1)
-            K = self.K
+        K = self.K
+        for j in np.flatnonzero(B.any(axis=(0, 2))):
+            sums = self.border_sums(j, S, B[:, j])
             for G, c, blk in ((out.Gall[j][None], out.call[j][None], sums[:1]), (out.Gte[:, j], out.cte[:, j], sums[1:K + 1]),
                               (out.Gtr[:, j], out.ctr[:, j], sums[:1] - sums[K + 1:])):
                 G[:, s:, :] = blk[:, :, :-1]
@@ -159,9 +154,29 @@ class FoldGrams:
                 c[:, s:] = blk[:, :, -1]
         return out
 
-    def _indicators(self) -> np.ndarray:
-        """(1 + 2K, T) 0/1 rows: the samples used, each fold's test block and each fold's
-        excluded stretch (test block and gaps), as :meth:`__init__` sums them."""
+    def border_sums(self, j: int, S: Sequence[int], Bj: np.ndarray) -> np.ndarray:
+        """(1 + 2K, p, |S| + p + 1) joint ``j``'s sums of the products of new columns ``Bj`` (T, p)
+        with atoms ``S``, with themselves and with the residual (last), weighted: over the samples
+        used (row 0), each fold's test block (rows 1 to K), each fold's excluded stretch (rows K + 1
+        to 2K: test block and gaps; a fold's training sums are row 0 less its row)."""
+        S = list(S)
+        ind, starts = self._indicators()
+        X = np.concatenate([self._weighted_base(j, S), Bj * self._inputs[4][:, j, None], self._weighted_r(j)[:, None]],
+                           axis=1)
+        Bw = X[:, len(S):len(S) + Bj.shape[1]]
+        if 64 * len(starts) <= len(X):
+            # a few long runs of samples (time blocks): one product per run
+            ends = np.append(starts[1:], len(X))
+            runs = np.stack([Bw[a:b].T @ X[a:b] for a, b in zip(starts, ends)])
+        else:
+            runs = np.add.reduceat(Bw[:, :, None] * X[:, None, :], starts, axis=0)
+        return np.tensordot(ind, runs, 1)
+
+    def _indicators(self) -> tuple[np.ndarray, np.ndarray]:
+        """The sums :meth:`__init__` makes, as 0/1 rows over runs of consecutive samples that
+        every sum takes or leaves alike: (1 + 2K, R) rows (the samples used, each fold's test
+        block, each fold's excluded stretch: test block and gaps) and the R runs' first samples
+        (a time-block split has a few runs per fold, so a sum over T samples is one over R runs)."""
         if not hasattr(self, "_ind"):
             A, r, use, folds, sw = self._inputs
             ind = np.zeros((1 + 2 * self.K, len(use)))
@@ -170,7 +185,8 @@ class FoldGrams:
                 ind[1 + k, te[use[te]]] = 1.0
                 ind[1 + self.K + k] = use
                 ind[1 + self.K + k, tr] = 0.0
-            self._ind, self._base = ind, {}
+            starts = np.concatenate([[0], np.flatnonzero((ind[:, 1:] != ind[:, :-1]).any(0)) + 1])
+            self._ind, self._base = (ind[:, starts], starts), {}
         return self._ind
 
     def _weighted_base(self, j: int, S: list) -> np.ndarray:
@@ -200,20 +216,22 @@ class FoldGrams:
     def cv_errors(self, S: Sequence[int], w: np.ndarray) -> np.ndarray:
         """Held-out sum of squared errors (K, n) of the model with atoms ``S``."""
         S = list(S)
-        return self.test_errors(S, [self.fit(S, w, k) for k in range(self.K)] if S else None)
+        if not S:
+            return self.yte.copy()
+        # every fold's training fit at once (the search scores thousands of atom sets)
+        G = np.einsum("j,kjpq->kpq", w, self.Gtr[:, :, S][:, :, :, S])
+        c = np.einsum("j,kjp->kp", w, self.ctr[:, :, S])
+        return self.test_errors(S, solve_gram(G, c))
 
     def test_errors(self, S: Sequence[int], thetas) -> np.ndarray:
         """Sum of squared errors (K, n) on each test block of atoms ``S`` with the coefficients
         ``thetas[k]`` (|S|,) fitted elsewhere for fold k (None or no atoms: the residual's own)."""
         S = list(S)
-        err = self.yte.copy()
         if not S or thetas is None:
-            return err
-        for k, th in enumerate(thetas):
-            Gs = self.Gte[k][:, S][:, :, S]
-            cs = self.cte[k][:, S]
-            err[k] = self.yte[k] - 2 * cs @ th + np.einsum("p,jpq,q->j", th, Gs, th)
-        return err
+            return self.yte.copy()
+        th = np.asarray(thetas, dtype=np.float64)
+        Gs, cs = self.Gte[:, :, S][:, :, :, S], self.cte[:, :, S]
+        return self.yte + ((Gs @ th[:, None, :, None])[..., 0] * th[:, None] - 2 * cs * th[:, None]).sum(-1)
 
 
 def atom_indices(effects, index: dict) -> list[int]:

@@ -37,7 +37,18 @@ class RobustFit:
 def solve_gram(G: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Solution of ``G x = c`` for a Gram matrix ``G`` (p, p), with a ridge of 1e-10 times its
     largest diagonal entry: exactly collinear columns then share their coefficient instead of
-    blowing up. Falls back to least squares if ``G`` is still singular."""
+    blowing up. Falls back to least squares if ``G`` is still singular. A stack ``G`` (K, p, p),
+    ``c`` (K, p) is solved system by system, each with its own ridge (K, p)."""
+    G, c = np.asarray(G), np.asarray(c)
+    if G.ndim == 3:
+        if not G.shape[0]:
+            return np.zeros(c.shape)
+        d = np.diagonal(G, axis1=1, axis2=2)
+        reg = 1e-10 * (d.max(1) if d.shape[1] else 1.0) + 1e-300
+        try:
+            return np.linalg.solve(G + reg[:, None, None] * np.eye(c.shape[1]), c[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            return np.stack([solve_gram(g, b) for g, b in zip(G, c)])
     d = np.diag(G).copy()
     reg = 1e-10 * (d.max() if d.size else 1.0) + 1e-300
     try:

@@ -237,7 +237,8 @@ def make_case(spec: dict, seed: int = 0):
         elif name == "torque_offset":
             offsets["torque"][j] = p["offset"]
         elif name == "payload":
-            physics["payload"] = {"link": e["link"], "mass": p["mass"], "com": list(p["com"])}
+            physics["payload"] = {"link": e["link"], "mass": p["mass"], "com": list(p["com"]),
+                                  "inertia": p.get("inertia")}  # (None: a solid 5 cm sphere)
         elif name == "coupled_transmission":
             physics.setdefault("tendons", []).append(coupling_tendon(e["joint"], p))
         else:
