@@ -222,6 +222,66 @@ def torque_share(phys: PhysicsFit, e, coef: dict, torque_sd: np.ndarray) -> floa
     return float(share[joints].max())
 
 
+#: a payload's centre of mass is not determined along a direction where its standard deviation
+#: exceeds this, m (a gripper's load placed no better than within a few centimetres)
+COM_UNRESOLVED = 0.02
+
+
+def unresolved_com(phys: PhysicsFit, e) -> list[tuple[np.ndarray, float]]:
+    """(unit direction (3,) in the link frame, standard deviation m) of each direction along
+    which payload ``e``'s centre of mass is not determined (above :data:`COM_UNRESOLVED`).
+
+    Directions: the eigenvectors of the first moments' weighted normal matrix given every other
+    chosen atom. Along each, the larger of two standard deviations: the normal matrix's (residual
+    variance over its eigenvalue, over the mass; infinite where the log holds no information, which
+    a bootstrap cannot show, every replicate landing on the same arbitrary value) and the block
+    bootstrap's. A log that holds one pose determines the mass and the centre across gravity, not
+    along it (a vertical force has no moment about a point above or below it)."""
+    index = {a: i for i, a in enumerate(phys.keys)}
+    pos = [phys.S.index(index[a]) for a in e.atoms()]
+    m = float(phys.coef[pos[0]])
+    g, S = phys.grams, phys.S
+    G, _ = g.normal_equations(S, phys.w)
+    rss = g.yte.sum(0) - 2 * g.call[:, S] @ phys.coef + np.einsum("p,jpq,q->j", phys.coef, g.Gall[:, S][:, :, S],
+                                                                      phys.coef)
+    sigma2 = float(phys.w @ rss / max(g.nte.sum(), 1.0))
+    h, o = pos[1:], [k for k in range(len(S)) if k not in pos[1:]]
+    H = G[np.ix_(h, h)] - G[np.ix_(h, o)] @ np.linalg.pinv(G[np.ix_(o, o)]) @ G[np.ix_(o, h)]
+    lam, V = np.linalg.eigh(H)
+    mb = phys.boot[:, pos[0]]
+    com_b = phys.boot[mb > 0][:, h] / mb[mb > 0, None]
+    C = np.cov(com_b.T) if len(com_b) > 2 else np.zeros((3, 3))
+    out = []
+    for k in range(3):
+        sd = np.sqrt(sigma2 / lam[k]) / m if lam[k] > 1e-12 * max(lam[-1], 1e-300) and m > 0 else np.inf
+        sd = max(sd, float(np.sqrt(max(V[:, k] @ C @ V[:, k], 0.0))))
+        if sd > COM_UNRESOLVED:
+            out.append((V[:, k], float(sd)))
+    return out
+
+
+def _com_statement(finding: dict, unresolved: list) -> dict:
+    """``finding`` (a payload's) with the directions of ``unresolved`` its log does not determine
+    stated; along one the log holds nothing about (a standard deviation beyond the reach a
+    payload's centre is sought in, ``MAX_COM_NORM``) the centre is taken to the point of that line
+    nearest the link frame, not left at an arbitrary value."""
+    from ..physics.payload import MAX_COM_NORM
+
+    c = np.asarray(finding["params"]["com"], dtype=np.float64)
+    for v, sd in unresolved:
+        if sd > MAX_COM_NORM:
+            c = c - (c @ v) * v
+    finding["params"]["com"] = [float(x) for x in c]
+    finding["evidence"]["com_unresolved"] = [{"direction": [float(x) for x in v], "std_m": sd} for v, sd in unresolved]
+    dirs = "; ".join(f"[{', '.join(f'{x:.2f}' for x in v)}] (+/- {sd:.2g} m)" for v, sd in unresolved)
+    moved = any(sd > MAX_COM_NORM for _, sd in unresolved)
+    finding["explanation"] += (f" This log does not determine its centre of mass along {dirs} (link frame): the "
+                               "poses it holds barely turn that direction across gravity (one pose carries the mass "
+                               "and the centre across gravity only)" + ("; the centre given is the point of that "
+                               "line nearest the link frame." if moved else "."))
+    return finding
+
+
 def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | None = None) -> list[dict]:
     """One finding per chosen effect that no other chosen effect contains, with its held-out
     evidence, standard deviations and block-bootstrap intervals (and, given each joint torque's
@@ -243,5 +303,7 @@ def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | N
         ev = {**ev, "params_std": std, "params_interval": parameter_intervals(e, phys, params),
               "interval_level": LEVEL, "interval_method": f"block bootstrap over the {phys.grams.K} time blocks, "
                                                           f"{len(phys.boot)} replicates, percentile"}
-        findings.append(effect_finding(e, params, std, ev, phys.ctx, jmain))
+        f = effect_finding(e, params, std, ev, phys.ctx, jmain)
+        unresolved = unresolved_com(phys, e) if e.name == "payload" and params["mass"] > 0 else []
+        findings.append(_com_statement(f, unresolved) if unresolved else f)
     return findings

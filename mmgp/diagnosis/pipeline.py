@@ -348,7 +348,7 @@ class Diagnoser(BaseEstimator):
                                                              seed=self.seed)
             laps("gp_s")
         return {**fit, "folds": self.n_folds, "samples_used": int(use.sum()),
-                "samples_excluded_as_disturbed": int((~use).sum())}
+                "samples_excluded_as_disturbed": int((~use).sum()), "still_joints": st.still_joints(prob, use)}
 
     def _mode_switch(self, prob, phys, pushes, laps):
         """Does a switchable effect (a payload) that changes over time (two sticky states)

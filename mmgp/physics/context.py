@@ -13,7 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..data.statistics import mad_sd
+from ..data.statistics import difference_noise_sd
 
 
 def pin_model(robot):
@@ -81,9 +81,7 @@ def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.0
     floor = np.maximum.reduce([floor_frac * rms, speed, np.full_like(rms, 1e-4)])
     if dq.shape[0] < 5:
         return np.maximum(floor, 1e-3)
-    d2 = dq[2:] - 2 * dq[1:-1] + dq[:-2]
-    sigma = mad_sd(d2) / np.sqrt(6.0)
-    return np.maximum(k * sigma, floor)
+    return np.maximum(k * difference_noise_sd(dq), floor)
 
 
 @dataclass

@@ -17,7 +17,8 @@ a torque channel that reads one exact value on most samples (``mmgp.data.channel
 Checks of the held-out fit (:func:`fit_warnings`: each command passes its own held-out
 normalised MSE per joint, where 1 is the torque's own mean; they come after the log's checks):
 a nominal model worse than the mean on most joints (another robot's model, or a URDF far from the
-robot: said apart by whether the command's learnt model predicts those joints), and a joint
+robot: said apart by whether the command's learnt model predicts those joints; joints held
+still, whose torque varies by its noise alone, are not judged against the mean), and a joint
 whose torque not even the learnt model predicts better than its mean (a log of noise, a wrong
 column, or a joint too still for its torque to rise above the sensor's noise).
 """
@@ -28,6 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..data.channels import dead_band_warnings
+from ..data.filtering import lowpass_for
+from ..data.statistics import difference_noise_sd
 from .context import pin_model
 
 #: angles beyond the model's limits by more than this (rad) count as violations
@@ -39,6 +42,9 @@ MAX_SPAN_RAD = 4 * np.pi
 #: logged dq against the derivative of the logged q: lowest correlation, largest scale mismatch
 MIN_DQ_CORRELATION = 0.7
 MAX_DQ_SCALE_RATIO = 1.5
+#: the position's motion (variance in its band, less the noise's) must exceed this many times the
+#: noise's variance there for a joint's velocity to be judged
+MOTION_NOISE_RATIO = 10.0
 
 
 def _limited_joints(model) -> list[tuple[int, float, float]]:
@@ -77,26 +83,53 @@ def degree_warnings(q: np.ndarray, names: list) -> list[str]:
             "degrees? (the log must hold radians)"]
 
 
+def _band_statistics(t: np.ndarray, a: np.ndarray, b: np.ndarray, na: np.ndarray, nb: np.ndarray):
+    """(covariance, signal variance of a, of b, noise variance of b, of a), (n,) each, of ``a`` and
+    ``b`` (T, n) low-passed alike to the band where ``b`` moves (``lowpass_for``), their white
+    noises of variances ``na``, ``nb`` (n,) taken out at the filter's noise gain."""
+    lp, _ = lowpass_for(t, b)
+    a, b = lp(a - a.mean(0)), lp(b - b.mean(0))
+    impulse = np.zeros((len(t), 1))
+    impulse[len(t) // 2] = 1.0
+    gain = float(np.sum(lp(impulse) ** 2))  # variance of filtered unit white noise
+    a, b = a - a.mean(0), b - b.mean(0)
+    return (np.mean(a * b, axis=0), np.mean(a * a, axis=0) - gain * na, np.mean(b * b, axis=0) - gain * nb,
+            gain * nb, gain * na)
+
+
 def velocity_warnings(t: np.ndarray, q: np.ndarray, dq: np.ndarray, names: list) -> list[str]:
     """Warnings where logged velocities ``dq`` (T, n) are not the time derivative of ``q``: the
-    central difference of q over about 20 ms, correlated with dq and compared in scale."""
+    central difference of q over about 20 ms, correlated with dq and compared in scale.
+
+    Both are compared in the band where the position moves (a zero-phase low-pass, the same for
+    both) with their white noise taken out (each noise from its signal's second differences: dq's
+    robustly, q's as an RMS, an encoder being quantised): an arm holding a pose has a logged
+    velocity that is noise, whose correlation with the position's steps says nothing. A joint
+    whose position moves no more than :data:`MOTION_NOISE_RATIO` times its noise variance in that
+    band is not judged (nothing to compare); where its motion stays under the velocity's own noise
+    there, only a velocity larger than the position allows is told (it could not show the
+    motion); above both, a velocity that shows none of it is (scale ratio near 0)."""
     dt = float(np.median(np.diff(t)))
     h = max(1, int(round(0.01 / max(dt, 1e-12))))
     if len(t) <= 2 * h + 10:
         return []
     fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
     v = dq[h:-h]
+    nq = difference_noise_sd(q, robust=False) ** 2
+    cov, sa, sb, nb, na = _band_statistics(t[h:-h], v, fd, difference_noise_sd(dq) ** 2, 2 * nq / (2 * h * dt) ** 2)
     out = []
     for k in range(q.shape[1]):
-        a, b = v[:, k] - v[:, k].mean(), fd[:, k] - fd[:, k].mean()
-        sa, sb = np.sqrt(a @ a), np.sqrt(b @ b)
-        if sa == 0 or sb == 0:
+        if not sb[k] > MOTION_NOISE_RATIO * nb[k]:
             continue
-        corr, ratio = float(a @ b / (sa * sb)), float(sa / sb)
-        if corr < MIN_DQ_CORRELATION or not 1 / MAX_DQ_SCALE_RATIO < ratio < MAX_DQ_SCALE_RATIO:
+        corr = float(cov[k] / np.sqrt(sa[k] * sb[k])) if sa[k] > 0 else 0.0
+        ratio = float(np.sqrt(max(sa[k], 0.0) / sb[k]))
+        # under the velocity's own noise a motion need not show: only a velocity larger than the
+        # position allows (units) is then told
+        shows = sb[k] > na[k]
+        if ratio >= MAX_DQ_SCALE_RATIO or shows and (corr < MIN_DQ_CORRELATION or ratio <= 1 / MAX_DQ_SCALE_RATIO):
             out.append(f"{names[k]}: the logged velocity is not the time derivative of the logged position "
-                       f"(correlation {corr:.2f}, scale ratio {ratio:.2f}): columns swapped, mixed units or "
-                       "a corrupt log")
+                       f"(correlation {corr:.2f}, scale ratio {ratio:.2f}, of the motion above the sensors' noise): "
+                       "columns swapped, mixed units or a corrupt log")
     return out
 
 
@@ -124,13 +157,18 @@ def log_warnings(logs, names: list, robot=None) -> list[str]:
     return suspect + notes
 
 
-def nominal_fit_warning(names: list, nominal, learnt=None, learnt_label: str = "the learnt model") -> list[str]:
+def nominal_fit_warning(names: list, nominal, learnt=None, learnt_label: str = "the learnt model",
+                        still=()) -> list[str]:
     """One warning when the nominal model predicts the held-out torque worse than its mean
-    (normalised MSE ``nominal`` (n,) > 1) on most joints, else none. ``learnt`` (n,): the
-    command's own model's figure; where it predicts every such joint (< 1) the URDF is far from
-    the robot rather than another robot's model, and the warning says so."""
-    worse = [k for k, v in enumerate(nominal) if v is not None and v > 1.0]
-    if len(worse) <= len(names) / 2:
+    (normalised MSE ``nominal`` (n,) > 1) on most of the judged joints, else none. ``learnt`` (n,):
+    the command's own model's figure; where it predicts every such joint (< 1) the URDF is far
+    from the robot rather than another robot's model, and the warning says so. ``still``: names
+    of joints held still (their torque varies by its noise alone), not judged: there the torque's
+    mean is exact and any model's error in the torque's level, however small, is "worse" (a
+    held pose)."""
+    judged = [k for k, j in enumerate(names) if j not in set(still)]
+    worse = [k for k in judged if nominal[k] is not None and nominal[k] > 1.0]
+    if len(worse) <= len(judged) / 2:
         return []
     head = (f"the nominal model predicts the torque worse than its mean on {len(worse)} of {len(names)} joints "
             f"(held-out nMSE up to {max(nominal[k] for k in worse):.3g})")
