@@ -22,6 +22,7 @@ Sets of logs (``--sets``):
   SOURCE_TUNING, SOURCE_FREE_TUNING) is developed on; ``issue29`` (ISSUE29_*, drawn once on
   2026-11-27 from a system random source, committed before any tuning) is scored once at the end;
   ``issue29b``: a second draw of its levers (ISSUE29B_*, 2026-11-28), with the same arms.
+  ``issue29c``: a third draw of its levers (ISSUE29C_*, 2026-11-28), with the same arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -115,6 +116,12 @@ ISSUE29_HOLDS_UR5 = (15263959,)
 ISSUE29B_SOURCE = (12774468, 17642758, 16040393, 18214691, 15832752, 18236567, 11015439, 17367152, 10641766,
                    17430176, 16237718, 11985165)
 ISSUE29B_SOURCE_FREE = (14045556, 11956926, 16746419, 16901030)
+# A third held-out draw (2026-11-28, third session, a system random source), committed before the
+# friction-physics change of the mode means was scored on anything but the first two draws
+# (both now tuning sets). ``issue29c``: these levers with the first draw's arms (never scored).
+ISSUE29C_SOURCE = (10643076, 17098479, 17671787, 14576934, 17362476, 13201065, 17507373, 11854182, 16881176,
+                   17706129, 17768547, 17375754)
+ISSUE29C_SOURCE_FREE = (12575917, 10391766, 13030341, 16570667)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -489,6 +496,11 @@ def main(argv=None) -> int:
                   + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
     if "issue29b" in sets:
         cases += (family_cases(ISSUE29B_SOURCE, "source", a.cache) + family_cases(ISSUE29B_SOURCE_FREE, "source-free", a.cache)
+                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
+                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
+                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
+    if "issue29c" in sets:
+        cases += (family_cases(ISSUE29C_SOURCE, "source", a.cache) + family_cases(ISSUE29C_SOURCE_FREE, "source-free", a.cache)
                   + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
                   + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
                   + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
