@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .._version import __version__
-from ..physics.mjcf import coupling_tendon
+from ..physics.mjcf import FRICTION_VELOCITY, coupling_tendon
 
 #: finding -> {MuJoCo joint property: the finding's parameter}
 JOINT_PROPERTY = {"coulomb_friction": {"frictionloss": "tau_c"}, "load_dependent_friction": {"frictionloss": "tau_c"},
@@ -56,10 +56,14 @@ LOAD_LINES = ('import mujoco, pinocchio as pin',
               'pin_model = pin.buildModelFromUrdf("corrected.urdf")         # Pinocchio: the corrected rigid body')
 
 INVERSE_NOTE = ("MuJoCo treats frictionloss as a (soft) constraint: mj_inverse's qfrc_inverse carries it only "
-                "through the constraint solver, not as frictionloss*sign(dq). For the joint torque the "
-                "diagnosis's friction law means, set mjDSBL_FRICTIONLOSS (qfrc_inverse is then M(q) ddq with "
-                "armature, plus bias, plus damping and spring forces) and add frictionloss*sign(dq) per joint and "
-                "J^T frictionloss*sign(J dq) per tendon; mmgp.sim.inverse_dynamics does this.")
+                "through the constraint solver, not as the friction law the diagnosis fitted, "
+                "frictionloss*tanh(dq/v_s), with v_s per joint in corrected.xml's custom numeric "
+                f"'{FRICTION_VELOCITY}' (findings.json info.v_s). For the joint torque, set mjDSBL_FRICTIONLOSS "
+                "(qfrc_inverse is then M(q) ddq with armature, plus bias, plus damping and spring forces) and add "
+                "frictionloss*tanh(dq/v_s) per joint and J^T frictionloss*tanh(J dq/v_w) per tendon, "
+                "v_w = sqrt(sum_i (J_i v_s_i)^2); mmgp.sim.inverse_dynamics does this. Not sign(dq): where a joint "
+                "stands still its static friction can take any value in the band, and sign() of a velocity at "
+                "noise level adds the whole level with a random sign.")
 
 
 @dataclass
@@ -244,10 +248,11 @@ def header(c: Corrections, nominal, fixed: list) -> str:
     return "\n".join(lines)
 
 
-def write_corrected(findings: list, urdf, joint_names: list, out) -> dict:
+def write_corrected(findings: list, urdf, joint_names: list, out, friction_velocity: dict | None = None) -> dict:
     """Write ``out/corrected.urdf`` and ``out/corrected.xml`` (atomically) for ``findings``
-    against the nominal ``urdf`` reduced to ``joint_names``; returns what was written, in words,
-    for findings.json and the report. Without a URDF, or when the files cannot be built (a link
+    against the nominal ``urdf`` reduced to ``joint_names`` (``friction_velocity``: joint -> v_s,
+    rad/s, the friction law's velocity scale, written into corrected.xml); returns what was
+    written, in words, for findings.json and the report. Without a URDF, or when the files cannot be built (a link
     the URDF lacks, a body no mass distribution has), nothing is written and the answer says why."""
     if urdf is None:
         return {"written": False, "why": "the diagnosis had no URDF (a robot given as a Pinocchio model, or none): "
@@ -267,8 +272,9 @@ def write_corrected(findings: list, urdf, joint_names: list, out) -> dict:
         text = corrected_urdf(urdf, robot.joint_names, body_changes=c.body_changes, payloads=c.payloads, comment=note)
         with tempfile.TemporaryDirectory() as tmp:
             (Path(tmp) / "corrected.urdf").write_text(text)
+            v_s = None if friction_velocity is None else [friction_velocity[nm] for nm in robot.joint_names]
             mjcf = build_mjcf(str(Path(tmp) / "corrected.urdf"), robot.joint_names, tendons=c.tendons,
-                              comment=header(c, urdf, fixed), **c.properties)
+                              comment=header(c, urdf, fixed), friction_velocity=v_s, **c.properties)
     except ValueError as exc:
         return {"written": False, "why": f"the corrected model could not be built: {exc}"}
     out = Path(out)
