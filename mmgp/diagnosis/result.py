@@ -164,7 +164,9 @@ class DiagnosisResult:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         # what was written of the corrected model stays with the result (the CLI prints its report)
-        self.corrected = write_corrected(self.findings, self.urdf, self.joint_names, out)
+        v_s = self.info.get("v_s")
+        self.corrected = write_corrected(self.findings, self.urdf, self.joint_names, out,
+                                         None if v_s is None else dict(zip(self.joint_names, v_s)))
         doc = self
         if self.plot_data is not None:
             doc = dataclasses.replace(doc, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
