@@ -12,7 +12,7 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, check_log_headers,
+from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, read_logs,
                      command_numerics, config_option, device_option, echo_warnings, force_option, logs_argument,
                      out_dir_option, quiet_option, seed_option, setting_option, sweep_limit, thinning_line)
 
@@ -134,7 +134,7 @@ def train(logs: List[Path] = logs_argument(),
           force: bool = force_option(),
           quiet: bool = quiet_option()):
     """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
-    check_log_headers(logs)
+    read = read_logs(logs)
     try:
         with ProgressDisplay(quiet) as shown:
             shown.waiting("train: loading the libraries")  # the imports take seconds
@@ -147,7 +147,7 @@ def train(logs: List[Path] = logs_argument(),
             with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(*logs, config)) as tmp:
                 model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
                 shown.stage(f"train: {len(logs)} log(s)", None)
-                model.fit(logs)
+                model.fit(read)
                 _step_thinning(shown, model.report_.get("thinning"))
                 shown.stage("train: writing the model, labels, plots and report", None)
                 _write_training_outputs(tmp, model)
