@@ -37,13 +37,13 @@ def _write_training_outputs(out: Path, model, evaluation: dict | None = None, ti
     (with the classification figures of ``evaluation`` when given)."""
     import numpy as np
 
-    from ..data.outputs import write_table
+    from ..data.outputs import atomic_write_text, write_table
     from ..evaluation.plots import plot_labels, plot_trace
     from ..evaluation.reports import write_training_report
 
     labels = model.labels_
     write_table(out / "labels.parquet", labels)
-    (out / "report.json").write_text(json.dumps(model.report_, indent=2))
+    atomic_write_text(out / "report.json", json.dumps(model.report_, indent=2))
     model.save(out)
     t = np.concatenate([lg.t for lg in model.logs_])
     tau = np.concatenate([lg.tau for lg in model.logs_])
@@ -258,7 +258,7 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
          quiet: bool = quiet_option()):
     """Train and evaluate on the shipped 1-DOF replica of the source experiment (MuJoCo,
     0.73 kg load, Bowden-cable-like friction, pushes, 20 Hz) and print our figures beside the source's."""
-    from ..data.outputs import atomic_output_dir, atomic_write_bytes
+    from ..data.outputs import atomic_output_dir, atomic_write_bytes, atomic_write_text
     from ..estimator import MultimodalGP
     from ..evaluation.metrics import format_figures
     from ..resources import demo_files
@@ -274,7 +274,7 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
             fig = _figures(model.labels_, lab)
             _write_training_outputs(tmp, model, fig, title="mmgp demo: 1-DOF replica of the source experiment")
             atomic_write_bytes(tmp / "evaluation.json", json.dumps(fig, indent=2).encode())
-            (tmp / marker).write_text("written by mmgp demo\n")
+            atomic_write_text(tmp / marker, "written by mmgp demo\n")
     except InputError as exc:
         _fail(exc)
     typer.echo("")
