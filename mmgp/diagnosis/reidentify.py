@@ -42,9 +42,9 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     Each side is scored at its own linearisation (``lib_rest`` relinearised without the body):
     the body's parameters of the links next to a payload's reproduce part of it (a mass on the
     distal link's axis), so at the whole library's fit a payload's centre of mass is far off
-    (validation val09, UR5 with 3 kg at 0.1 m: 0.57 kg at 0.53 m) and the library alone, held
-    there, seems to leave what the body then takes (the body re-identified, the payload found
-    0.57 kg; relinearised on its own the library leaves 1e-6 of the nominal error). Both sides
+    and the library alone, held there, seems to leave what the body then takes (the body
+    re-identified, the payload found too light; relinearised on its own the library leaves
+    almost none of the nominal error). Both sides
     are weighted alike (the whole library's robust weights; each joint by its nominal residual's
     variance), so the blocks' errors pair. Returns (the effects the selection starts from, evidence)."""
     rb = rigid_body(prob.library)
