@@ -42,9 +42,9 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     Each side is scored at its own linearisation (``lib_rest`` relinearised without the body):
     the body's parameters of the links next to a payload's reproduce part of it (a mass on the
     distal link's axis), so at the whole library's fit a payload's centre of mass is far off
-    (validation val09, UR5 with 3 kg at 0.1 m: 0.57 kg at 0.53 m) and the library alone, held
-    there, seems to leave what the body then takes (the body re-identified, the payload found
-    0.57 kg; relinearised on its own the library leaves 1e-6 of the nominal error). Both sides
+    and the library alone, held there, seems to leave what the body then takes (the body
+    re-identified, the payload found too light; relinearised on its own the library leaves
+    almost none of the nominal error). Both sides
     are weighted alike (the whole library's robust weights; each joint by its logged torque's
     variance), so the blocks' errors pair. Returns (the effects the selection starts from, evidence)."""
     rb = rigid_body(prob.library)
@@ -55,9 +55,8 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     ones = np.ones(len(prob.t), bool)
     # each joint's error relative to its logged torque's variance (the report's nMSE), fixed before
     # either side is fitted. Not the nominal residual's: a joint the URDF already fits has a residual
-    # at noise level, and its weight 1/noise^2 (3e4-6e4 x a mismatched joint's on a Panda whose link 3
-    # is 1.5 kg heavier) let noise-level changes on the right joints outvote a 96% cut on the wrong
-    # ones (gain -0.16; with these weights +0.59, p 3e-5)
+    # at noise level, and its weight 1/noise^2 lets noise-level changes on the right joints outvote
+    # a large cut on the wrong ones (benchmarks/README, the body on FIGAROH's rows)
     w = 1.0 / torque_variance(prob, ones)
 
     def cv(fit):
