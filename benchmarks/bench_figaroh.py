@@ -31,10 +31,12 @@ so the states and torques below are theirs. Our side, as a user: the training ro
 log (TIAGo's torso channel in their convention), ``mmgp diagnose LOG --out DIR`` with default
 settings on it (the nominal model: their URDF), then on their validation states the model the
 diagnosis writes: MuJoCo inverse dynamics of ``corrected.xml`` (``mmgp.sim.inverse_dynamics``, dry
-friction as frictionloss * sign(dq)) plus what MJCF cannot express, as the report tells the user
-to apply it: a torque-sensor offset added to the model's torque, an encoder offset subtracted
-from the angle, load-dependent friction's beta * |load| * sign(dq) with the corrected model's
-torque as the load. The diagnosis's GP stage is a held-out diagnostic, not an exported model, so it
+friction as the diagnosis fits it, frictionloss * tanh(dq / v_s) with its v_s, findings.json
+``info.v_s``) plus what MJCF cannot express, as the report tells the user to apply it: a
+torque-sensor offset added to the model's torque, an encoder offset subtracted from the angle,
+load-dependent friction's beta * |load| * tanh(dq / v_s) with the corrected model's torque as the
+load. The row ``found_physics_sign`` applies sign(dq) instead (the law used before 2026-11-28;
+half of TX40's validation samples stand still, where the two differ by the whole friction level). The diagnosis's GP stage is a held-out diagnostic, not an exported model, so it
 is not scored here.
 
 Printed per robot: FIGAROH's figures beside ours (nominal, with the found physics), the
@@ -174,19 +176,22 @@ def diagnose(log: Path, out: Path) -> float:
     return time.perf_counter() - t0
 
 
-def found_physics_torque(out: Path, names: list, q, dq, ddq) -> np.ndarray:
+def found_physics_torque(out: Path, names: list, q, dq, ddq, sign: bool = False) -> np.ndarray:
     """(T, n) torque the diagnosis in ``out`` predicts for the logged states: MuJoCo inverse
-    dynamics of corrected.xml, plus the findings MJCF cannot express, applied as the report says."""
+    dynamics of corrected.xml, plus the findings MJCF cannot express, applied as the report says;
+    dry friction by tanh(dq / v_s) with the diagnosis's v_s (``sign``: by sign(dq))."""
     import mujoco
 
     from mmgp.sim import inverse_dynamics
+    from mmgp.sim.inverse import smooth_sign
 
-    findings = json.loads((out / "findings.json").read_text())["findings"]
-    by = {(f["effect"], f.get("joint")): f["params"] for f in findings}
+    doc = json.loads((out / "findings.json").read_text())
+    by = {(f["effect"], f.get("joint")): f["params"] for f in doc["findings"]}
+    v_s = np.zeros(len(names)) if sign else np.asarray(doc["info"]["v_s"], dtype=np.float64)
     enc = np.array([by.get(("encoder_offset", j), {}).get("offset", 0.0) for j in names])
-    tau = inverse_dynamics(mujoco.MjModel.from_xml_path(str(out / "corrected.xml")), q - enc, dq, ddq)
+    tau = inverse_dynamics(mujoco.MjModel.from_xml_path(str(out / "corrected.xml")), q - enc, dq, ddq, v_s=v_s)
     beta = np.array([by.get(("load_dependent_friction", j), {}).get("beta", 0.0) for j in names])
-    tau = tau + beta * np.abs(tau) * np.sign(dq)
+    tau = tau + beta * np.abs(tau) * smooth_sign(dq, v_s)
     return tau + np.array([by.get(("torque_offset", j), {}).get("offset", 0.0) for j in names])
 
 
@@ -245,7 +250,8 @@ def run(robot: str, folder: Path, tiago_urdf: Path, out_dir: Path | None = None)
     doc = json.loads((out / "findings.json").read_text())
     names = doc.get("joint_names") or (TIAGO_JOINTS if robot == "tiago" else [f"joint_{i}" for i in range(1, 7)])
     res = score(parts, {"nominal": lambda q, dq, ddq: nominal_torque(urdf, names, q, dq, ddq),
-                        "with_found_physics": lambda q, dq, ddq: found_physics_torque(out, names, q, dq, ddq)})
+                        "with_found_physics": lambda q, dq, ddq: found_physics_torque(out, names, q, dq, ddq),
+                        "found_physics_sign": lambda q, dq, ddq: found_physics_torque(out, names, q, dq, ddq, True)})
     return {"robot": robot, "joints": names, "diagnose_s": seconds, "scores": res, "findings": doc["findings"],
             "fit": doc.get("fit"), "out": str(out), "identifiability": identifiability_of(urdf, names, parts["train"]),
             "reidentification": doc.get("info", {}).get("reidentification"),

@@ -121,17 +121,14 @@ class MultimodalGP(BaseEstimator):
         on every sample up to 16,000 samples per mode, when one output's kernel matrix and its
         factor fit in a third of the free RAM (half the free GPU memory); SGPR over every sample
         with ``n_inducing`` k-means inducing inputs above (O(N M^2) time, O(M^2) memory: the
-        path for 10^5+ samples on a GPU). Measured on the real Barrett WAM (12,000 training
-        rows, published test set, same hyperparameters): exact on all rows mean nMSE 0.022,
-        SGPR M=3,000 0.033, subset of data 3,000 0.058, at similar cost for the first two;
-        "subset" (exact GP on ``n_inducing`` random samples) is never picked by "auto".
+        path for 10^5+ samples on a GPU). "subset" (exact GP on ``n_inducing`` random samples),
+        less accurate than both at the same size, is never picked by "auto".
     n_inducing : int, default 2000
         SGPR inducing inputs (or the subset size of "subset").
     fit_points, fit_iter : int, default 2000, 50
         Hyperparameter fitting subset size (evenly spaced samples) and L-BFGS iterations. The sweeps
         fit on their support (at most ``max_support``); one mode without disturbance fits on
-        ``fit_points`` of all samples, one optimiser run per joint. Real Barrett WAM, exact GP
-        on all 12,000 rows: 1,000 points, one joint run: mean test nMSE 0.022 (joint 7: 0.108).
+        ``fit_points`` of all samples, one optimiser run per joint.
     max_sweeps, min_sweeps : int, default 40, 6
         EM sweep limits.
     tol_changed : float in (0, 1], default 0.05

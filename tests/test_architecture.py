@@ -165,3 +165,58 @@ def test_no_two_modules_import_each_other():
              for m, p in _modules() if m not in faces}
     assert not _cycles(edges), f"import circles: {_cycles(edges)}"
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+# Writing a file is the atomic writer's job (mmgp.data.outputs): complete or absent, never over
+# an input. Elsewhere only scratch files in a temporary folder, named here with why.
+WRITER = "mmgp.data.outputs"
+SCRATCH = {("mmgp.diagnosis.corrected", "write_corrected"),   # the URDF the MJCF builder reads
+           ("mmgp.sim.family", "_models"),                     # the URDF MuJoCo loads
+           ("mmgp.sim.concealed", "actuator_urdf_path")}       # the same, once per process
+_WRITE_METHODS = {"write_text", "write_bytes", "to_parquet", "to_csv", "to_json", "savefig", "save", "savez",
+                  "savez_compressed", "savetxt", "dump", "write_table"}
+
+
+def _direct_writes(path: Path):
+    """(function, line, call) of each call in ``path`` that writes a file itself: the methods
+    above on something other than an in-memory buffer named ``buf``, and ``open`` for writing."""
+    tree = ast.parse(path.read_text())
+    owner = {}
+    for fn in ast.walk(tree):
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for node in ast.walk(fn):
+                owner.setdefault(id(node), fn.name)
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        f, args = node.func, node.args
+        first = args[0] if args else None
+        to_buffer = isinstance(first, ast.Name) and first.id == "buf"
+        if isinstance(f, ast.Attribute) and f.attr in _WRITE_METHODS and not to_buffer:
+            if f.attr == "save" and not (isinstance(f.value, ast.Name) and f.value.id in ("np", "numpy", "torch")):
+                continue  # a model's own save() goes through the writer itself
+            if f.attr == "write_table" and not (isinstance(f.value, ast.Name) and f.value.id == "pq"):
+                continue  # mmgp.data.outputs.write_table is the writer
+            if f.attr in ("to_json", "to_csv") and first is None:
+                continue  # without a path they return the text
+            if f.attr == "dump" and not (isinstance(f.value, ast.Name) and f.value.id in ("json", "pickle")):
+                continue
+            yield owner.get(id(node), "<module>"), node.lineno, f.attr
+        elif isinstance(f, ast.Name) and f.id == "open":
+            mode = args[1] if len(args) > 1 else next((k.value for k in node.keywords if k.arg == "mode"), None)
+            if isinstance(mode, ast.Constant) and any(c in str(mode.value) for c in "wax+"):
+                yield owner.get(id(node), "<module>"), node.lineno, "open"
+
+
+def test_outputs_are_written_by_the_atomic_writer_only():
+    bad = [f"{p.relative_to(PKG.parent)}:{line} {fn}: {call}(...)" for m, p in _modules() if m != WRITER
+           for fn, line, call in _direct_writes(p) if (m, fn) not in SCRATCH]
+    assert not bad, "files written outside mmgp.data.outputs:\n" + "\n".join(bad)
+
+
+def test_the_writer_rule_catches_direct_writes(tmp_path):
+    f = tmp_path / "x.py"
+    f.write_text("def g(out, fig, df, buf):\n    (out / 'a.json').write_text('{}')\n    fig.savefig(out / 'p.png')\n"
+                 "    fig.savefig(buf)\n    df.to_parquet(out)\n    open(out, 'w')\n    open(out)\n")
+    assert [(fn, call) for fn, _, call in _direct_writes(f)] == [("g", "write_text"), ("g", "savefig"),
+                                                                  ("g", "to_parquet"), ("g", "open")]

@@ -25,7 +25,7 @@ from mmgp.data.logs import read_log, write_log
 from mmgp.diagnosis.corrected import write_corrected
 from mmgp.diagnosis.result import DiagnosisResult
 from mmgp.physics.robot import RobotModel
-from mmgp.sim import PANDA_JOINTS, build_mjcf, explained_share, inverse_dynamics, panda_urdf_path
+from mmgp.sim import PANDA_JOINTS, build_mjcf, explained_share, friction_velocity, inverse_dynamics, panda_urdf_path
 from mmgp.sim import concealed as C
 
 # two links swinging in the vertical x-z plane; a tool behind a fixed joint (merged into the forearm)
@@ -205,6 +205,38 @@ def test_tendon_bodies_and_mode_from_hand_made_findings(tmp_path):
                  "coupled_transmission"):
         assert word in head, word
     assert sum("mode_switch" in w for w in summary["not_expressed"]) == 1
+
+
+def test_friction_law_is_the_fitted_tanh_with_its_velocity_scale(tmp_path):
+    """corrected.xml carries the velocity scale v_s the diagnosis fitted its friction with, and
+    MuJoCo's inverse dynamics of it follows tau_c tanh(dq / v_s) (a tendon: tanh(w / v_w), v_w from
+    its joints' v_s), held against Pinocchio's RNEA plus that closed form; at a standstill whose
+    velocity reads 1e-15 rad/s the friction adds nothing, where sign(dq) would add its whole level."""
+    urdf = tmp_path / "arm2.urdf"
+    urdf.write_text(ARM2_URDF)
+    findings = [{"effect": "coulomb_friction", "joint": "shoulder", "params": {"tau_c": 0.3}},
+                {"effect": "coupled_transmission", "joint": "elbow",
+                 "params": {"coupled_joint": "shoulder", "ratio": 0.5, "tau_c": 0.2, "b": 0.0, "inertia": 0.0}}]
+    v_s = {"shoulder": 0.05, "elbow": 0.02}
+    assert write_corrected(findings, urdf, JOINTS, tmp_path, v_s)["written"]
+    mj = mujoco.MjModel.from_xml_path(str(tmp_path / "corrected.xml"))
+    np.testing.assert_allclose(friction_velocity(mj), [0.05, 0.02], rtol=1e-15)
+    rng = np.random.default_rng(1)
+    q, ddq = rng.uniform(-1, 1, (2, 40, 2))
+    dq = rng.uniform(-0.1, 0.1, (40, 2))  # within a few v_s, where tanh and sign differ
+    dq[:10] = rng.choice([-1e-15, 1e-15], (10, 2))  # a filtered standstill
+    model = pin.buildModelFromUrdf(str(tmp_path / "corrected.urdf"))
+    data = model.createData()
+    rigid = np.array([pin.rnea(model, data, q[t], dq[t], ddq[t]) for t in range(40)])
+    w = dq[:, 1] + 0.5 * dq[:, 0]
+    f = 0.2 * np.tanh(w / np.hypot(0.02, 0.5 * 0.05))
+    want = rigid + np.stack([0.3 * np.tanh(dq[:, 0] / 0.05) + 0.5 * f, f], axis=1)
+    tau = inverse_dynamics(mj, q, dq, ddq)
+    np.testing.assert_allclose(tau, want, atol=1e-9)
+    np.testing.assert_allclose(tau[:10], rigid[:10], atol=1e-9)
+    # v_s = 0 is the former law, sign(dq): the standstill then carries the whole level
+    at_rest = inverse_dynamics(mj, q[:10], dq[:10], ddq[:10], v_s=0.0) - rigid[:10]
+    np.testing.assert_allclose(np.abs(at_rest[:, 0] - 0.5 * 0.2 * np.sign(w[:10])), 0.3, atol=1e-9)
 
 
 def test_joints_the_log_lacks_are_fixed_where_the_diagnosis_held_them(tmp_path):

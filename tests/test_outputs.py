@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import json
 import os
 import shutil
 import signal
@@ -474,3 +475,53 @@ def test_failed_swap_keeps_the_old_output(tmp_path, monkeypatch):
         with atomic_output_dir(out, force=True) as d:
             (d / "new.txt").write_text("new")
     assert entries(out) == ["old.txt"] and entries(tmp_path) == ["out"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Several files into a folder the caller gives (DiagnosisResult.write)
+# ---------------------------------------------------------------------------------------------
+
+def _small_result():
+    from mmgp.diagnosis.result import DiagnosisResult
+
+    return DiagnosisResult(findings=[], fit={}, location={}, joint_names=["j0"], info={"n_samples": 3})
+
+
+def test_diagnosis_write_failing_midway_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """findings.json is written, then report.md fails: the folder keeps its old files and
+    content, and gets neither the new findings.json nor anything partial, nor leftovers beside."""
+    import mmgp.data.outputs as outputs
+
+    out = tmp_path / "diag"
+    out.mkdir()
+    (out / "findings.json").write_text("old findings")
+    (out / "notes.txt").write_text("the user's")
+    real, calls = outputs.atomic_write_text, []
+
+    def fail_second(path, text, **kw):
+        calls.append(Path(path).name)
+        if len(calls) == 2:
+            raise OSError(errno.EIO, "disk gone")
+        return real(path, text, **kw)
+
+    monkeypatch.setattr(outputs, "atomic_write_text", fail_second)
+    with pytest.raises(OSError):
+        _small_result().write(out)
+    assert calls == ["findings.json", "report.md"]
+    assert entries(out) == ["findings.json", "notes.txt"]
+    assert (out / "findings.json").read_text() == "old findings"
+    assert entries(tmp_path) == ["diag"]
+
+
+def test_diagnosis_write_replaces_its_files_and_keeps_the_rest(tmp_path):
+    out = tmp_path / "diag"
+    out.mkdir()
+    (out / "findings.json").write_text("old findings")
+    (out / "notes.txt").write_text("the user's")
+    _small_result().write(out)
+    assert entries(out) == ["findings.json", "notes.txt", "report.html", "report.md"]
+    assert json.loads((out / "findings.json").read_text())["findings"] == []
+    assert (out / "notes.txt").read_text() == "the user's"
+    _small_result().write(tmp_path / "new" / "diag")  # a missing folder is created
+    assert entries(tmp_path / "new" / "diag") == ["findings.json", "report.html", "report.md"]
+    assert entries(tmp_path) == ["diag", "new"]

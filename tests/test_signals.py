@@ -258,3 +258,29 @@ def test_cv_window_follows_the_noise_and_beats_the_rate_rule_on_noisy_velocity()
     err_cv = SavitzkyGolay(cv=True)(t, noisy[:, None], 1)[inner, 0] - ddq_true[inner]
     err_rate = SavitzkyGolay()(t, noisy[:, None], 1)[inner, 0] - ddq_true[inner]
     assert np.sqrt(np.mean(err_cv ** 2)) < 0.5 * np.sqrt(np.mean(err_rate ** 2))
+
+
+def test_cross_validated_windows_are_searched_once_for_dq_and_ddq(monkeypatch):
+    """Positions only, cv windows: one leave-one-out search per joint (not one per derivative),
+    and dq, ddq both come from the window it chose: against the least-squares weights of
+    ``local_poly_filter`` (interior) and scipy's own filter with that window (everywhere, edges included)."""
+    import mmgp.data.differentiation as diff_mod
+
+    rng = np.random.default_rng(5)
+    rate, T = 100.0, 600
+    t = np.arange(T) / rate
+    q = np.stack([np.sin(2 * np.pi * 0.3 * t), 0.5 * np.cos(2 * np.pi * 0.7 * t)], axis=1)
+    q = q + np.array([1e-4, 3e-3]) * rng.normal(size=q.shape)  # two noise levels: two windows
+    chosen = []
+    real = diff_mod.loo_window
+    monkeypatch.setattr(diff_mod, "loo_window", lambda *a, **k: chosen.append(real(*a, **k)) or chosen[-1])
+    out = complete_derivatives(RobotLog(path="mem", t=t, q=q, tau=np.zeros_like(q)), SavitzkyGolay(cv=True))
+    assert len(chosen) == 2 and chosen[0] != chosen[1]
+    for j, w in enumerate(chosen):
+        c = w // 2
+        for deriv, got in ((1, out.dq), (2, out.ddq)):
+            h = local_poly_filter(w, 3, deriv, 1 / rate)
+            inner = np.array([h @ q[i - c:i + c + 1, j] for i in range(c, T - c)])
+            assert np.allclose(got[c:T - c, j], inner, rtol=1e-9, atol=1e-9 * np.abs(inner).max())
+            ref = savgol_filter(q[:, j], w, 3, deriv=deriv, delta=1 / rate, mode="interp")
+            assert np.allclose(got[:, j], ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())

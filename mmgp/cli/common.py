@@ -47,14 +47,15 @@ def echo_warnings(warnings) -> None:
         typer.echo(f"warning: {line}", err=True)
 
 
-def check_log_headers(logs) -> None:
-    """Refuse a wrong path, file type or column of any of ``logs`` from the file's header alone,
-    before a command loads torch, scikit-learn or Pinocchio (seconds): the answer comes at once."""
-    from ..data.headers import check_log_header
+def read_logs(logs) -> list:
+    """Each of ``logs`` read and checked once (:func:`mmgp.data.logs.read_log`, a RobotLog that
+    the command passes on: the robot is found in its metadata, the rows are not read again).
+    Before a command loads torch, scikit-learn or Pinocchio (seconds), so a wrong path, file type
+    or column answers at once (the header is checked before the rows); exit status 2."""
+    from ..data.logs import read_log
 
     try:
-        for log in logs:
-            check_log_header(log)
+        return [read_log(log) for log in logs]
     except InputError as exc:
         _fail(exc)
 

@@ -12,7 +12,7 @@ from typing import List, Optional
 import typer
 
 from ..errors import InputError
-from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, check_log_headers,
+from .common import (DEVICE_HELP, ProgressDisplay, SweepProgress, _fail, _given, _model_files, app, read_logs,
                      command_numerics, config_option, device_option, echo_warnings, force_option, logs_argument,
                      out_dir_option, quiet_option, seed_option, setting_option, sweep_limit, thinning_line)
 
@@ -37,13 +37,13 @@ def _write_training_outputs(out: Path, model, evaluation: dict | None = None, ti
     (with the classification figures of ``evaluation`` when given)."""
     import numpy as np
 
-    from ..data.outputs import write_table
+    from ..data.outputs import atomic_write_text, write_table
     from ..evaluation.plots import plot_labels, plot_trace
     from ..evaluation.reports import write_training_report
 
     labels = model.labels_
     write_table(out / "labels.parquet", labels)
-    (out / "report.json").write_text(json.dumps(model.report_, indent=2))
+    atomic_write_text(out / "report.json", json.dumps(model.report_, indent=2))
     model.save(out)
     t = np.concatenate([lg.t for lg in model.logs_])
     tau = np.concatenate([lg.tau for lg in model.logs_])
@@ -134,7 +134,7 @@ def train(logs: List[Path] = logs_argument(),
           force: bool = force_option(),
           quiet: bool = quiet_option()):
     """Learn modes, disturbances and per-mode GPs from logs; write labels, report, model, plots, report.html."""
-    check_log_headers(logs)
+    read = read_logs(logs)
     try:
         with ProgressDisplay(quiet) as shown:
             shown.waiting("train: loading the libraries")  # the imports take seconds
@@ -147,7 +147,7 @@ def train(logs: List[Path] = logs_argument(),
             with command_numerics(device), atomic_output_dir(out, force=force, inputs=_given(*logs, config)) as tmp:
                 model = MultimodalGP(**settings, progress=SweepProgress(shown, sweep_limit(settings)))
                 shown.stage(f"train: {len(logs)} log(s)", None)
-                model.fit(logs)
+                model.fit(read)
                 _step_thinning(shown, model.report_.get("thinning"))
                 shown.stage("train: writing the model, labels, plots and report", None)
                 _write_training_outputs(tmp, model)
@@ -258,7 +258,7 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
          quiet: bool = quiet_option()):
     """Train and evaluate on the shipped 1-DOF replica of the source experiment (MuJoCo,
     0.73 kg load, Bowden-cable-like friction, pushes, 20 Hz) and print our figures beside the source's."""
-    from ..data.outputs import atomic_output_dir, atomic_write_bytes
+    from ..data.outputs import atomic_output_dir, atomic_write_bytes, atomic_write_text
     from ..estimator import MultimodalGP
     from ..evaluation.metrics import format_figures
     from ..resources import demo_files
@@ -274,7 +274,7 @@ def demo(out: Path = typer.Option(Path("mmgp-demo"), "--out", help="Output folde
             fig = _figures(model.labels_, lab)
             _write_training_outputs(tmp, model, fig, title="mmgp demo: 1-DOF replica of the source experiment")
             atomic_write_bytes(tmp / "evaluation.json", json.dumps(fig, indent=2).encode())
-            (tmp / marker).write_text("written by mmgp demo\n")
+            atomic_write_text(tmp / marker, "written by mmgp demo\n")
     except InputError as exc:
         _fail(exc)
     typer.echo("")

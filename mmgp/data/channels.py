@@ -1,8 +1,8 @@
 """What a logged torque channel can resolve.
 
 A drive that reports its torque from the motor current may report exactly zero below a
-threshold (a dead band): the real TIAGo's arm joints 5-7 read exactly 0.0 N*m on 88-90% of the
-identification log's samples and +-0.02 to +-0.45 N*m otherwise. A model of such a channel learns
+threshold (a dead band): a real arm's joints may read exactly 0.0 N*m on most samples and a few
+tenths of a N*m otherwise. A model of such a channel learns
 the zeros almost exactly, so every non-zero reading stands tens of standard deviations off; the
 user is told rather than left to read those as pushes or effects.
 """

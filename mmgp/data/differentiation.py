@@ -68,18 +68,24 @@ class SavitzkyGolay:
 
     def __call__(self, t: np.ndarray, x: np.ndarray, deriv: int) -> np.ndarray:
         """Derivative ``deriv`` (1 or 2) of ``x`` (T, n) sampled at ``t`` (T,); same shape."""
+        return self.derivatives(t, x, (deriv,))[0]
+
+    def derivatives(self, t: np.ndarray, x: np.ndarray, derivs=(1, 2)) -> list[np.ndarray]:
+        """Derivatives ``derivs`` (each 1 or 2) of ``x`` (T, n) sampled at ``t`` (T,), each (T, n).
+        The windows depend on ``x`` alone, so they are chosen once for all of them."""
         t = np.asarray(t, dtype=np.float64)
         x = np.asarray(x, dtype=np.float64)
         tu, xu, dt, uniform = self._uniform(t, x)
         windows = self._windows(xu, dt)
-        if len(set(windows)) == 1 and not (self.cv and self.window_s is None):
-            d = savgol_filter(xu, windows[0], self.order, deriv=deriv, delta=dt, axis=0, mode="interp")
-        else:
-            d = np.stack([savgol_filter(xu[:, j], wj, self.order, deriv=deriv, delta=dt, mode="interp")
-                          for j, wj in enumerate(windows)], axis=1)
-        if uniform:
-            return d
-        return np.stack([np.interp(t, tu, d[:, j]) for j in range(x.shape[1])], axis=1)
+        out = []
+        for deriv in derivs:
+            if len(set(windows)) == 1 and not (self.cv and self.window_s is None):
+                d = savgol_filter(xu, windows[0], self.order, deriv=deriv, delta=dt, axis=0, mode="interp")
+            else:
+                d = np.stack([savgol_filter(xu[:, j], wj, self.order, deriv=deriv, delta=dt, mode="interp")
+                              for j, wj in enumerate(windows)], axis=1)
+            out.append(d if uniform else np.stack([np.interp(t, tu, d[:, j]) for j in range(x.shape[1])], axis=1))
+        return out
 
 
 def loo_window(x: np.ndarray, order: int, w_min: int, w_max: int, n_candidates: int = 12) -> int:
@@ -116,6 +122,9 @@ def complete_derivatives(log: RobotLog, differentiator: SavitzkyGolay | None = N
     diff = differentiator or SavitzkyGolay()
     dq, ddq = log.dq, log.ddq
     dq_est = ddq_est = False
+    if dq is None and ddq is None and hasattr(diff, "derivatives"):
+        dq, ddq = diff.derivatives(log.t, log.q, (1, 2))  # one window search for both
+        dq_est = ddq_est = True
     if dq is None:
         dq = diff(log.t, log.q, 1)
         dq_est = True

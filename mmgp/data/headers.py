@@ -45,11 +45,13 @@ def _refuse_duplicates(names: Sequence[str], path: Path) -> None:
         seen[name] = i
 
 
-def _parquet_schema(path: Path):
+def open_parquet(path: Path):
+    """The Parquet file opened once (a ``pyarrow.parquet.ParquetFile``: its schema, then its rows
+    from the same handle; close it, or use it as a context manager), or an InputError."""
     import pyarrow.parquet as pq
 
     try:
-        return pq.read_schema(path)
+        return pq.ParquetFile(path)
     except Exception as exc:  # pyarrow raises several types for files that are not Parquet
         raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
 
@@ -130,7 +132,8 @@ def read_table_header(path: str | os.PathLike) -> tuple[list[str], dict]:
     metadata)."""
     path = Path(path)
     if _check_file(path) == "parquet":
-        schema = _parquet_schema(path)
+        with open_parquet(path) as pf:
+            schema = pf.schema_arrow
         _refuse_duplicates(list(schema.names), path)
         return [str(c) for c in schema.names], _parquet_metadata(schema, path)
     try:

@@ -21,7 +21,7 @@ import pandas as pd
 
 from ..errors import InputError, describe, one_line
 from .headers import (_BLANK_LINES, _LINE_BREAK, _check_file, _csv_bytes, _csv_header, _csv_separator,
-                      _log_columns, _missing_t, _parquet_metadata, _parquet_schema, _refuse_duplicates,
+                      _log_columns, _missing_t, _parquet_metadata, _refuse_duplicates, open_parquet,
                       read_table_header)
 from .outputs import write_table
 from .times import START_TIME_KEY, format_start_time, parse_start_time
@@ -85,15 +85,15 @@ _FIELDS = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 # Tables: one reader for CSV and Parquet files, shared by logs and labels
 # ---------------------------------------------------------------------------------------------
 
-def _read_parquet(path: Path) -> tuple[pd.DataFrame, dict]:
-    import pyarrow.parquet as pq
-
-    schema = _parquet_schema(path)
-    _refuse_duplicates(list(schema.names), path)
-    try:
-        df = pq.read_table(path).to_pandas()
-    except Exception as exc:
-        raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
+def _read_parquet(path: Path, check_columns) -> tuple[pd.DataFrame, dict]:
+    with open_parquet(path) as pf:
+        schema = pf.schema_arrow
+        _refuse_duplicates(list(schema.names), path)
+        check_columns(list(schema.names), path)
+        try:
+            df = pf.read().to_pandas()
+        except Exception as exc:
+            raise InputError(f"unreadable Parquet file ({describe(exc)})", file=path) from None
     return df, _parquet_metadata(schema, path)
 
 
@@ -113,10 +113,11 @@ def _check_first_row(body: memoryview, sep: str, n_names: int, path: Path) -> No
         raise InputError(f"the first data row has {n} fields but the header has {n_names}", file=path, row=0)
 
 
-def _read_csv(path: Path) -> pd.DataFrame:
+def _read_csv(path: Path, check_columns) -> pd.DataFrame:
     """A CSV table. Rule: the separator is the one of ',', ';' or tab found in the header line;
     with ';' or tab, a comma between two digits anywhere in the data makes ',' the decimal mark
-    (European spreadsheets), else it is '.'."""
+    (European spreadsheets), else it is '.'. ``check_columns(names, path)`` sees the header's
+    names before the rows are parsed."""
     data = _csv_bytes(path)
     start = _BLANK_LINES.match(data).end()
     h = len(_LINE_BREAK.findall(data, 0, start))  # lines before the header
@@ -125,6 +126,7 @@ def _read_csv(path: Path) -> pd.DataFrame:
     body = memoryview(data)[brk.end():] if brk else memoryview(b"")
     sep = _csv_separator(header, path)
     names = _csv_header(header, sep, path)
+    check_columns(names, path)
     _check_first_row(body, sep, len(names), path)
     decimal = "," if sep != "," and _DECIMAL_COMMA.search(body) else "."
     try:
@@ -148,13 +150,15 @@ def _read_csv(path: Path) -> pd.DataFrame:
     return df
 
 
-def _read_table(path: Path) -> tuple[pd.DataFrame, dict]:
-    """(table, file metadata) of a CSV or Parquet file; every failure is one InputError."""
+def _read_table(path: Path, check_columns=lambda names, path: None) -> tuple[pd.DataFrame, dict]:
+    """(table, file metadata) of a CSV or Parquet file, the file opened once; every failure is
+    one InputError. ``check_columns(names, path)`` refuses a header before the rows are read, so
+    a wrong column is answered first, as from the header alone (:func:`read_table_header`)."""
     kind = _check_file(path)
     if kind == "parquet":
-        return _read_parquet(path)
+        return _read_parquet(path, check_columns)
     try:
-        return _read_csv(path), {}
+        return _read_csv(path, check_columns), {}
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc.strerror or describe(exc)})", file=path) from None
 
@@ -249,15 +253,13 @@ def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
     with no step longer than a day (``MAX_TIME_STEP_S``).
     """
     path = Path(path)
-    df, meta = _read_table(path)
+    df, meta = _read_table(path, _log_columns)
     n, groups = _log_columns(list(df.columns), path)
     names = list(joint_names) if joint_names is not None else meta.get("joint_names")
     if meta.get("joint_names") is not None and len(meta["joint_names"]) != n:
         raise InputError(f"metadata joint_names lists {len(meta['joint_names'])} joints but the log has {n}",
                          file=path, column="q_0")
-    if n_joints is not None and n != n_joints:
-        raise InputError(f"log has {n} joints (q_0..q_{n-1}) but the robot model has {n_joints}",
-                         file=path, column=f"q_{min(n, n_joints)}" if n < n_joints else f"q_{n_joints}")
+    _check_joint_count(n, n_joints, path)
     T = len(df)
     if T < min_samples:
         what = "no data rows (a header only)" if T == 0 else f"{T} rows"
@@ -274,6 +276,23 @@ def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
         meta = dict(meta, joint_names=list(names))
     return RobotLog(path=str(path), t=t, q=arrays["q"], tau=arrays["tau"], dq=arrays["dq"],
                     ddq=arrays["ddq"], metadata=meta)
+
+
+def _check_joint_count(n: int, n_joints: int | None, path) -> None:
+    if n_joints is not None and n != n_joints:
+        raise InputError(f"log has {n} joints (q_0..q_{n-1}) but the robot model has {n_joints}",
+                         file=path, column=f"q_{min(n, n_joints)}" if n < n_joints else f"q_{n_joints}")
+
+
+def for_robot(log: RobotLog, *, n_joints: int | None = None,
+              joint_names: Sequence[str] | None = None) -> RobotLog:
+    """A log read without its robot model (``read_log(path)``) as ``read_log(path, n_joints=...,
+    joint_names=...)`` returns it: the joint count checked against the model's, the model's
+    ``joint_names`` in its metadata. A command reads its log once, then finds the robot in it."""
+    _check_joint_count(log.n_joints, n_joints, log.path)
+    if joint_names is None:
+        return log
+    return log.replace(metadata=dict(log.metadata, joint_names=list(joint_names)))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import io
 import os
 import re
 import shutil
@@ -389,6 +390,38 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, force: bool = Tr
     """Write a file completely or not at all (``force``/``inputs`` as in :func:`write_table`)."""
     with atomic_output_file(path, force=force, inputs=inputs) as tmp:
         tmp.write_bytes(data)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, *, force: bool = True,
+                      inputs: Iterable[str | os.PathLike] = ()) -> None:
+    """:func:`atomic_write_bytes` of ``text`` in UTF-8."""
+    atomic_write_bytes(path, text.encode("utf-8"), force=force, inputs=inputs)
+
+
+def write_figure(path: str | os.PathLike, fig, *, force: bool = True, **savefig) -> None:
+    """A matplotlib figure saved completely or not at all, in the format of ``path``'s suffix
+    (``savefig``: e.g. ``dpi``); the figure is rendered in memory first, then written."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".").lower() or "png", **savefig)
+    atomic_write_bytes(path, buf.getvalue(), force=force)
+
+
+@contextlib.contextmanager
+def atomic_output_files(out: str | os.PathLike, *,
+                        inputs: Iterable[str | os.PathLike] = ()) -> Iterator[Path]:
+    """Yield a temporary folder beside ``out`` whose entries are moved into the folder ``out``
+    (created when missing) only if the block finishes without error: a failure leaves ``out``
+    as it was. Unlike :func:`atomic_output_dir`, the rest of ``out`` stays; an entry of the same
+    name is replaced (as ``MultimodalGP.save`` replaces its files). For a library call that
+    writes several files into a folder it is given; a command writes its folder whole."""
+    out = Path(out)
+    with _claimed(out, force=True, inputs=inputs, folder=True, make=_partial_dir) as tmp:
+        yield tmp
+        with _output_errors(out, "move the finished files into the folder"):
+            out.mkdir(exist_ok=True)
+            for entry in sorted(tmp.iterdir()):
+                os.replace(entry, out / entry.name)
+            os.rmdir(tmp)
 
 
 def jsonable(x):

@@ -1,7 +1,7 @@
 """The corrected model a diagnosis writes (CONTRACT section 2, 1.2): ``corrected.urdf``, ``corrected.xml``.
 
 ``corrected.urdf`` is the nominal URDF with the identified rigid body (``inertial_parameters``:
-each body's ``delta`` added to its link's inertial) and payloads (a link welded to theirs); the
+the consistent fit's ``bodies`` whole, else each body's ``delta`` added to its link's inertial) and payloads (a link welded to theirs); the
 joints the log does not record are fixed where the diagnosis held them.
 
 ``corrected.xml`` is the MJCF of the same bodies (:func:`mmgp.physics.mjcf.build_mjcf` on the
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .._version import __version__
-from ..physics.mjcf import coupling_tendon
+from ..physics.mjcf import FRICTION_VELOCITY, coupling_tendon
 
 #: finding -> {MuJoCo joint property: the finding's parameter}
 JOINT_PROPERTY = {"coulomb_friction": {"frictionloss": "tau_c"}, "load_dependent_friction": {"frictionloss": "tau_c"},
@@ -56,10 +56,14 @@ LOAD_LINES = ('import mujoco, pinocchio as pin',
               'pin_model = pin.buildModelFromUrdf("corrected.urdf")         # Pinocchio: the corrected rigid body')
 
 INVERSE_NOTE = ("MuJoCo treats frictionloss as a (soft) constraint: mj_inverse's qfrc_inverse carries it only "
-                "through the constraint solver, not as frictionloss*sign(dq). For the joint torque the "
-                "diagnosis's friction law means, set mjDSBL_FRICTIONLOSS (qfrc_inverse is then M(q) ddq with "
-                "armature, plus bias, plus damping and spring forces) and add frictionloss*sign(dq) per joint and "
-                "J^T frictionloss*sign(J dq) per tendon; mmgp.sim.inverse_dynamics does this.")
+                "through the constraint solver, not as the friction law the diagnosis fitted, "
+                "frictionloss*tanh(dq/v_s), with v_s per joint in corrected.xml's custom numeric "
+                f"'{FRICTION_VELOCITY}' (findings.json info.v_s). For the joint torque, set mjDSBL_FRICTIONLOSS "
+                "(qfrc_inverse is then M(q) ddq with armature, plus bias, plus damping and spring forces) and add "
+                "frictionloss*tanh(dq/v_s) per joint and J^T frictionloss*tanh(J dq/v_w) per tendon, "
+                "v_w = sqrt(sum_i (J_i v_s_i)^2); mmgp.sim.inverse_dynamics does this. Not sign(dq): where a joint "
+                "stands still its static friction can take any value in the band, and sign() of a velocity at "
+                "noise level adds the whole level with a random sign.")
 
 
 @dataclass
@@ -153,32 +157,46 @@ def _payload(f: dict, c: Corrections) -> None:
                      f"a link {link}_payload in corrected.urdf (payload{mode})")
 
 
+def _new_inertia(Y0, d: dict, whole: bool):
+    """Pinocchio inertia (link frame) of a body: ``d`` the whole body (``whole``) or a delta
+    (mass, com, inertia about the com; parts absent are the nominal ``Y0``'s)."""
+    import pinocchio as pin
+
+    v = np.asarray(d.get("inertia", np.zeros(6)), dtype=np.float64)
+    I6 = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
+    if whole:
+        return pin.Inertia(float(d["mass"]), np.asarray(d["com"], dtype=np.float64), I6)
+    com = np.asarray(Y0.lever) + np.asarray(d.get("com", np.zeros(3)), dtype=np.float64)
+    return pin.Inertia(float(Y0.mass + d.get("mass", 0.0)), com, np.asarray(Y0.inertia) + I6)
+
+
 def _inertial(f: dict, model, c: Corrections) -> None:
-    """``inertial_parameters``: each body's delta (mass, com, inertia about the com; what the
-    log determines) added to Pinocchio's body of the reduced nominal model, as a change of the
-    link's ten parameters."""
+    """``inertial_parameters``: the physically consistent fit's bodies whole (``bodies``: they
+    carry every identified base parameter), else each body's delta (mass, com, inertia about the
+    com; what the log determines) added to Pinocchio's body of the reduced nominal model, as a
+    change of the link's ten parameters."""
     import pinocchio as pin
 
     from ..physics.consistent import consistency_problems
     from ..physics.context import link_names_of
 
     links = link_names_of(model)
-    for body, d in (f["params"].get("delta") or {}).items():
+    whole = bool(f["params"].get("bodies"))
+    for body, d in (f["params"].get("bodies") or f["params"].get("delta") or {}).items():
         if body not in links or not model.existFrame(body, pin.FrameType.BODY):
             c.not_expressed.append(f"inertial_parameters of {body!r}: not a link of the corrected model")
             continue
         Y0 = model.inertias[links.index(body) + 1]
-        dI = np.asarray(d.get("inertia", np.zeros(6)), dtype=np.float64)
-        Ic = np.asarray(Y0.inertia) + np.array([[dI[0], dI[3], dI[4]], [dI[3], dI[1], dI[5]], [dI[4], dI[5], dI[2]]])
-        com = np.asarray(Y0.lever) + np.asarray(d.get("com", np.zeros(3)), dtype=np.float64)
-        new = pin.Inertia(float(Y0.mass + d.get("mass", 0.0)), com, Ic)
+        new = _new_inertia(Y0, d, whole)
         problems = consistency_problems(new.toDynamicParameters(), name=body)
         if problems:
-            c.not_expressed.append(f"inertial_parameters of {body}: the nominal body plus its delta is not physical "
-                                   f"({'; '.join(problems)}); the nominal inertial is kept")
+            c.not_expressed.append(f"inertial_parameters of {body}: the {'identified' if whole else 'nominal'} body"
+                                   f"{'' if whole else ' plus its delta'} is not physical ({'; '.join(problems)}); "
+                                   "the nominal inertial is kept")
             continue
         c.body_changes[body] = new.toDynamicParameters() - Y0.toDynamicParameters()
-        c.written.append(f"{body}: inertial parameters changed by " + ", ".join(
+        c.written.append(f"{body}: inertial parameters " + ("of the physically consistent fit: " if whole else
+                         "changed by ") + ", ".join(
             f"{k} {_g(v) if np.isscalar(v) else '[' + ', '.join(_g(x) for x in v) + ']'}" for k, v in d.items())
             + " (inertial_parameters)")
 
@@ -230,10 +248,11 @@ def header(c: Corrections, nominal, fixed: list) -> str:
     return "\n".join(lines)
 
 
-def write_corrected(findings: list, urdf, joint_names: list, out) -> dict:
+def write_corrected(findings: list, urdf, joint_names: list, out, friction_velocity: dict | None = None) -> dict:
     """Write ``out/corrected.urdf`` and ``out/corrected.xml`` (atomically) for ``findings``
-    against the nominal ``urdf`` reduced to ``joint_names``; returns what was written, in words,
-    for findings.json and the report. Without a URDF, or when the files cannot be built (a link
+    against the nominal ``urdf`` reduced to ``joint_names`` (``friction_velocity``: joint -> v_s,
+    rad/s, the friction law's velocity scale, written into corrected.xml); returns what was
+    written, in words, for findings.json and the report. Without a URDF, or when the files cannot be built (a link
     the URDF lacks, a body no mass distribution has), nothing is written and the answer says why."""
     if urdf is None:
         return {"written": False, "why": "the diagnosis had no URDF (a robot given as a Pinocchio model, or none): "
@@ -253,8 +272,9 @@ def write_corrected(findings: list, urdf, joint_names: list, out) -> dict:
         text = corrected_urdf(urdf, robot.joint_names, body_changes=c.body_changes, payloads=c.payloads, comment=note)
         with tempfile.TemporaryDirectory() as tmp:
             (Path(tmp) / "corrected.urdf").write_text(text)
+            v_s = None if friction_velocity is None else [friction_velocity[nm] for nm in robot.joint_names]
             mjcf = build_mjcf(str(Path(tmp) / "corrected.urdf"), robot.joint_names, tendons=c.tendons,
-                              comment=header(c, urdf, fixed), **c.properties)
+                              comment=header(c, urdf, fixed), friction_velocity=v_s, **c.properties)
     except ValueError as exc:
         return {"written": False, "why": f"the corrected model could not be built: {exc}"}
     out = Path(out)

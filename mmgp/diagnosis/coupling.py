@@ -7,12 +7,11 @@ cannot tell from per-joint friction). Its friction on joint k and c times it on 
 partly like friction on each joint, so a coupling is tried *in their place*: the candidate model
 is the library less the rigid body (per-joint effects, payloads) less the friction and armature
 of both joints, or of one of them, plus the coupling. One joint may keep its own: a coupled wrist
-has a motor of its own on one joint besides the motor that turns with both (Staubli TX40: motor 5
-turns with joint 5 alone, motor 6 with joints 5 and 6), and a coupling tried in place of both
-joints' friction then has to carry motor 5's as well (on the real TX40 it came out at ratio 0.55,
-short of the family's level, against 1.0 with joint 5's own friction kept, 94% of the pair's
-held-out error). The candidates are joint pairs x ratios x these three replaced sets,
-and it must beat the per-joint effects on held-out blocks (one-sided signed-rank test on the
+has a motor of its own on one joint besides the motor that turns with both (motor 5 turns with
+joint 5 alone, motor 6 with joints 5 and 6), and a coupling tried in place of both joints'
+friction then has to carry motor 5's as well and falls short of the family's level, where with
+joint 5's own friction kept it passes. The candidates are joint pairs x ratios x these three
+replaced sets, and it must beat the per-joint effects on held-out blocks (one-sided signed-rank test on the
 joint-weighted sum, the weighted total not raised: ``selection.gain_p``) at the family-wise level
 ``alpha`` over this family's own candidates (Bonferroni). That alone passes misfit that three more
 columns fit a little better. A coupled motor must also show what only it does (:func:`physical`),
@@ -255,8 +254,8 @@ def search(prob, ctx, grams: FoldGrams, chosen, keys, w, *, alpha: float, done=(
 def find_couplings(prob, weights: np.ndarray, w: np.ndarray, *, alpha: float, seed: int = 0):
     """Couplings in the context of the library less the rigid body (friction, armature, springs,
     offsets on every joint, payloads: with the body, a time-block fit of the whole library
-    extrapolates worst, on a simulated UR5 wrist 25-fold the coupling's held-out error; without
-    the payloads, a UR5's 3 kg payload, validation val09, was taken for a shoulder coupling) on sample
+    extrapolates worst, many times the coupling's held-out error; without the payloads, a
+    payload was taken for a shoulder coupling) on sample
     weights ``weights`` (T, n), joint weights ``w`` (n,): each found one joins the context and the
     pairs left are searched again. Returns (the problem with the couplings in its library, the
     couplings, the evidence of each search)."""

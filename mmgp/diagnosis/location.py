@@ -10,7 +10,7 @@ def locate(r: np.ndarray, q, dq, ddq, tau, tau_rbd, t, v_s, joint_names) -> dict
     near-zero velocity, high load, a position quintile, high acceleration, a time fifth) whose
     residual RMS is largest relative to the joint's overall residual RMS. ``fraction_of_torque_rms``
     is the residual RMS over the measured torque's (``tau``): the nominal torque's can be ~0 (a
-    joint the model gives no load), and the share then read 5e14% on the real TX40."""
+    joint the model gives no load), and the share then reads absurdly large."""
     out = {}
     T = r.shape[0]
     for j, jn in enumerate(joint_names):

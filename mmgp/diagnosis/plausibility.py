@@ -29,7 +29,7 @@ def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
     whole-log findings) when that is most of them; each joint the found physics predicts worse
     than the nominal model is told. A nominal model worse than the mean on most
     joints is told, but withholds nothing by itself: a real arm's URDF can be that far off and
-    the re-identified body right (the Staubli TX40: nominal 0.77-1.45, with physics 0.003-0.007).
+    the re-identified body right.
     A joint held still (``fit["still_joints"]``: its torque varies by its noise alone) is judged
     against the nominal model instead of the mean: there the mean is exact, and a model's error
     in the torque's level of a fraction of a percent is many times the noise's variance (a UR5
@@ -96,10 +96,9 @@ def implausible(finding: dict, model, names: list) -> str | None:
 #: Smallest torque a finding may have, as a share of its joint torque's spread (the RMS of its
 #: fitted torque over the torque's standard deviation, ``fitting.torque_share``). Below it an
 #: effect is within what a joint-torque sensor's calibration vouches for (commonly about a percent
-#: of its range), and a held-out gain that small is the simulator's or the URDF's fine print: on
-#: validation val09 (a simulated UR5 with a 3 kg payload) "armature" of 0.009 kg*m^2 on the
-#: shoulder, 0.3% of its torque's spread, once every equation was kept; the smallest real effects
-#: measured, 1.2% (real Panda, Coulomb friction on joint 2) and 1.6% (val10, Coulomb friction).
+#: of its range), and a held-out gain that small is the simulator's or the URDF's fine print (an
+#: "armature" on a shoulder, a fraction of a percent of its torque's spread), while the smallest
+#: real effects measured lie above a percent.
 MIN_TORQUE_SHARE = 0.005
 
 

@@ -42,18 +42,22 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     Each side is scored at its own linearisation (``lib_rest`` relinearised without the body):
     the body's parameters of the links next to a payload's reproduce part of it (a mass on the
     distal link's axis), so at the whole library's fit a payload's centre of mass is far off
-    (validation val09, UR5 with 3 kg at 0.1 m: 0.57 kg at 0.53 m) and the library alone, held
-    there, seems to leave what the body then takes (the body re-identified, the payload found
-    0.57 kg; relinearised on its own the library leaves 1e-6 of the nominal error). Both sides
-    are weighted alike (the whole library's robust weights; each joint by its nominal residual's
+    and the library alone, held there, seems to leave what the body then takes (the body
+    re-identified, the payload found too light; relinearised on its own the library leaves
+    almost none of the nominal error). Both sides
+    are weighted alike (the whole library's robust weights; each joint by its logged torque's
     variance), so the blocks' errors pair. Returns (the effects the selection starts from, evidence)."""
     rb = rigid_body(prob.library)
     if not rb:
         return [], {}
-    from .stages import nominal_weights
+    from .stages import torque_variance
 
-    w = nominal_weights(prob)       # fixed before either side is fitted
     ones = np.ones(len(prob.t), bool)
+    # each joint's error relative to its logged torque's variance (the report's nMSE), fixed before
+    # either side is fitted. Not the nominal residual's: a joint the URDF already fits has a residual
+    # at noise level, and its weight 1/noise^2 lets noise-level changes on the right joints outvote
+    # a large cut on the wrong ones (benchmarks/README, the body on FIGAROH's rows)
+    w = 1.0 / torque_variance(prob, ones)
 
     def cv(fit):
         # every atom of the fit's own library
@@ -68,7 +72,7 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     ev = {"p_value": p, "held_out_gain": gain, "min_gain": min_gain, "re_identified": bool(take),
           "n_base_parameters": rb[0].base.n_base,
           "criterion": f"{K}-fold time-block CV of the whole effect library with and without the base "
-                       f"parameters (each relinearised at its own fit), one-sided Wilcoxon signed-rank test at "
+                       f"parameters (each relinearised at its own fit; joints weighted by their torque's variance), one-sided Wilcoxon signed-rank test at "
                        f"level {level:.3g} (Bonferroni over the library's candidates) and a held-out gain >= "
                        f"{min_gain:g} of what the library leaves"}
     return (rb if take else []), ev

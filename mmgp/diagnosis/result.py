@@ -160,23 +160,27 @@ class DiagnosisResult:
         """Write ``findings.json``, ``report.md``, residual plots (with plot data), (when modes
         or pushes were found) ``labels.parquet`` (t, mode, disturbed per analysed sample) and the
         corrected model, ``corrected.urdf`` and ``corrected.xml`` (CONTRACT 1.2; none without a
-        URDF, and the report says so)."""
+        URDF, and the report says so). All of them or none: they are written beside ``out_dir``
+        and moved into it at the end (:func:`mmgp.data.outputs.atomic_output_files`; other files
+        in ``out_dir`` stay, those of the same names are replaced)."""
+        from ..data.outputs import atomic_output_files, atomic_write_text, write_table
+
         out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        # what was written of the corrected model stays with the result (the CLI prints its report)
-        self.corrected = write_corrected(self.findings, self.urdf, self.joint_names, out)
-        doc = self
-        if self.plot_data is not None:
-            doc = dataclasses.replace(doc, info={**self.info, "plots": plot_residuals(self.plot_data, out)})
-        (out / "findings.json").write_text(doc.to_json())
-        if self.labels is not None:
-            import pandas as pd
+        with atomic_output_files(out) as tmp:
+            # what was written of the corrected model stays with the result (the CLI prints its report)
+            v_s = self.info.get("v_s")
+            self.corrected = write_corrected(self.findings, self.urdf, self.joint_names, tmp,
+                                             None if v_s is None else dict(zip(self.joint_names, v_s)))
+            doc = self
+            if self.plot_data is not None:
+                doc = dataclasses.replace(doc, info={**self.info, "plots": plot_residuals(self.plot_data, tmp)})
+            atomic_write_text(tmp / "findings.json", doc.to_json())
+            if self.labels is not None:
+                import pandas as pd
 
-            from ..data.outputs import write_table
-
-            write_table(out / "labels.parquet", pd.DataFrame(self.labels))
-        (out / "report.md").write_text(doc.report_markdown())
-        doc.report_html(out)
+                write_table(tmp / "labels.parquet", pd.DataFrame(self.labels))
+            atomic_write_text(tmp / "report.md", doc.report_markdown())
+            doc.report_html(tmp)
         return out
 
     def report_html(self, out: Path) -> Path:
@@ -238,6 +242,8 @@ def plot_residuals(d: dict, out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..data.outputs import write_figure
+
     names = []
     T = d["q"].shape[0]
     idx = np.linspace(0, T - 1, min(T, 3000)).astype(int)
@@ -263,7 +269,7 @@ def plot_residuals(d: dict, out: Path) -> list[str]:
         fig.suptitle(f"{jn}: residual before / after the found effects")
         fig.tight_layout()
         name = f"residual_{j}_{jn}.png".replace("/", "_")
-        fig.savefig(out / name, dpi=80)
+        write_figure(out / name, fig, dpi=80)
         plt.close(fig)
         names.append(name)
     return names

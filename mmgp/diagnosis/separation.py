@@ -175,9 +175,8 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
     # sweeps (about 10 s on a 7-DOF log on one core). Otherwise training's inference (its trimmed
     # start, push-size floor, abstention and shortest push), since the robust fit of the effect
-    # library starts from its flags: a lighter learner without them flagged 84% of a push-free
-    # simulated Panda log with a payload as pushed, and 18% of a lever log pushed on 40% of its
-    # samples for 1-3 s (validation val04, whose load-dependent friction was then missed).
+    # library starts from its flags: a lighter learner without them flagged most of a push-free
+    # log as pushed, and on a pushed log the load-dependent friction was then missed.
     # No shortest mode: diagnosis judges each mode by its own held-out gain.
     kw = dict(max_support=min(250, len(idx)), fit_points=min(200, len(idx)), fit_iter=15, max_sweeps=8,
               min_sweeps=4, average_last=3, final_support=min(250, len(idx)), estep="mpm", min_mode_s=0.0)

@@ -186,7 +186,7 @@ def joint_weights(e: np.ndarray, M: np.ndarray) -> np.ndarray:
 
 
 def nominal_weights(prob: Problem, use: np.ndarray | None = None) -> np.ndarray:
-    """(n,) each joint's weight where effects are compared and chosen (``reidentify``, the
+    """(n,) each joint's weight where effects are compared and chosen (the
     selection and fit): the inverse variance of its nominal residual over valid equations of
     samples ``use`` (default all), fixed before any effect is fitted, so every joint's error
     relative to the nominal model counts alike. Weights from a fitted model's own residual favour

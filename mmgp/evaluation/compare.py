@@ -35,7 +35,7 @@ from ..gp.exact import ExactGP
 from ..gp.linalg import resolve_device
 from ..data.logs import RobotLog
 from ..errors import InputError
-from ..data.outputs import atomic_write_bytes, jsonable
+from ..data.outputs import atomic_write_bytes, jsonable, write_figure
 from ..data.folds import default_gap, spread_subset, time_block_folds
 from ..physics.plausibility import fit_warnings, log_warnings
 
@@ -216,8 +216,6 @@ def write_compare(result: dict, out_dir) -> list[Path]:
     """Write ``out_dir/compare.json`` (the result), ``out_dir/compare.png`` (grouped bars of
     normalised MSE per joint, log scale, dashed line at 1 = predicting the mean) and
     ``out_dir/report.html`` (both on one self-contained page). Returns the paths."""
-    import io as _io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -249,11 +247,9 @@ def write_compare(result: dict, out_dir) -> list[Path]:
                  f"gap {result['gap_s']:.2g} s", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    buf = _io.BytesIO()
-    fig.savefig(buf, format="png", dpi=120)
-    plt.close(fig)
     png = out_dir / "compare.png"
-    atomic_write_bytes(png, buf.getvalue())
+    write_figure(png, fig, dpi=120)
+    plt.close(fig)
     from .reports import write_compare_report
 
     return [js, png, write_compare_report(out_dir, result)]

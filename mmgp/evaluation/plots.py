@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.outputs import write_figure
+
 
 def _plt():
     import matplotlib
@@ -39,7 +41,7 @@ def plot_labels(path: str | Path, t: np.ndarray, tau: np.ndarray, mode: np.ndarr
     axes[n].set_ylim(-0.05, 1.05)
     axes[n].set_xlabel("t [s]")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    write_figure(path, fig, dpi=90)
     plt.close(fig)
 
 
@@ -56,5 +58,5 @@ def plot_trace(path: str | Path, trace: list[dict]) -> None:
     a2.set_ylabel("labels changed")
     a2.set_xlabel("sweep")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    write_figure(path, fig, dpi=90)
     plt.close(fig)

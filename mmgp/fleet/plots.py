@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..data.outputs import write_figure
+
 
 def _file_name(robot, effect, joint, taken: set) -> str:
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{robot}__{effect}__{joint or 'log'}")
@@ -98,7 +100,7 @@ def plot_trends(table: pd.DataFrame, drift_report: dict, out_dir) -> list[str]:
         series = {p: entries.get((robot, effect, joint, p)) for p in g["param"].unique()}
         fig = trend_figure(g, f"{robot}: {effect}" + (f" on {joint}" if joint else ""), series)
         name = _file_name(robot, effect, joint, set(names))
-        fig.savefig(out / name, dpi=90)
+        write_figure(out / name, fig, dpi=90)
         plt.close(fig)
         names.append(name)
     return names

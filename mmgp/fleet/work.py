@@ -100,14 +100,15 @@ def diagnose_log(log, robot, settings: dict | None):
     return diagnoser.findings_, diagnoser.result_.to_dict()
 
 
-def train_log(path: Path, robot, settings: dict | None) -> dict:
-    """Train on one log; returns the training report and the saved model's files as bytes.
+def train_log(log, robot, settings: dict | None) -> dict:
+    """Train on one log (a RobotLog read against ``robot``, or a path); returns the training
+    report and the saved model's files as bytes.
 
     The one place the fleet calls the training."""
     from ..data.outputs import jsonable, write_table
     from ..estimator import MultimodalGP
 
-    model = MultimodalGP(robot=robot, **(settings or {})).fit(path)
+    model = MultimodalGP(robot=robot, **(settings or {})).fit(log)
     with tempfile.TemporaryDirectory(prefix="mmgp-fleet-") as tmp:
         folder = Path(tmp)
         model.save(folder)
@@ -117,22 +118,23 @@ def train_log(path: Path, robot, settings: dict | None) -> dict:
 
 
 def _process(path: Path, job: dict, out: dict) -> None:
-    from ..data.logs import read_log
+    from ..data.logs import for_robot, read_log
     from ..physics.robot import load_robot
 
     if out["log_time_source"] is None:  # a job from the Fleet carries the time its driver read
         out["log_time"], out["log_time_source"] = log_time(path)
-    robot = load_robot(robot=job.get("robot"), urdf=job.get("urdf"), log_path=path)
+    log = read_log(path)  # once: the robot is found in it, the diagnosis and the training use it
+    robot = load_robot(robot=job.get("robot"), urdf=job.get("urdf"), log_path=log)
     if robot is None:
         raise InputError("diagnosis needs a nominal model: give --robot NAME or --urdf PATH "
                          "(or name one in the log's metadata)", file=path)
     out["robot"] = robot_label(robot, job.get("robot"))
     report(f"{out['log']}: diagnosis")
-    log = read_log(path, n_joints=robot.n_joints, joint_names=robot.joint_names)
+    log = for_robot(log, n_joints=robot.n_joints, joint_names=robot.joint_names)
     out["findings"], out["diagnosis"] = diagnose_log(log, robot, job.get("diagnosis_settings"))
     if job.get("train"):
         report(f"{out['log']}: training")
-        out["training"] = train_log(path, robot, job.get("train_settings"))
+        out["training"] = train_log(log, robot, job.get("train_settings"))
 
 
 def blank_outcome(job: dict, error: str | None = None) -> dict:

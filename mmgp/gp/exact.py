@@ -14,9 +14,8 @@ inflating the predictive variance. The log marginal likelihood is available as a
 
 Fitting cost: L-BFGS-B (scipy) on hand-derived gradients (one K^-1 and one (N, N) product per
 evaluation, see :func:`mmgp.gp.hyper.rbf_value_and_grad`), first on a small coarse subset, then on
-the fitting subset. On 2,000 real Barrett WAM samples (7 outputs, 21 inputs) this fits several
-times faster than scikit-learn's GaussianProcessRegressor at lower held-out error
-(benchmarks/bench_gp_speed.py). ``mmgp.gp.sparse.make_gp`` picks this GP or SGPR by size and memory.
+the fitting subset. This fits faster than scikit-learn's GaussianProcessRegressor at lower
+held-out error (benchmarks/bench_gp_speed.py). ``mmgp.gp.sparse.make_gp`` picks this GP or SGPR by size and memory.
 """
 from __future__ import annotations
 
@@ -143,8 +142,8 @@ class ExactGP(StandardisedRBFGP):
     coarse_fit_points : on a cold start (no ``hyper`` given) with more than twice this many
         fitting samples, the optimiser first runs ``max_iter`` iterations on a random subset of
         this size, then ``max(10, max_iter // 3)`` on the full fitting subset. Most of the climb
-        happens far from the optimum, where a small subset points the same way at ~1/30 of the
-        cost (Barrett WAM, 21 inputs: same held-out error as 60 full iterations, ~3x faster).
+        happens far from the optimum, where a small subset points the same way at a fraction of
+        the cost.
         0 disables it.
     noise_floor : smallest noise variance, as a fraction of each output's variance.
     block_s : with sample times given to ``fit`` (``t``), hyperparameters maximise the

@@ -226,15 +226,12 @@ def optimise_hyper(X: torch.Tensor, Y: torch.Tensor, init: Hyper, *, objective: 
 
     ``independent``: one L-BFGS run per output instead of one run over all outputs' parameters.
     The outputs are independent GPs, but a joint run shares its line searches and its stopping,
-    so an output whose climb is slow can stop far from its optimum: on the real Barrett WAM
-    (2,000 rows, 7 joints) the joint run left joint 7 at a per-sample LOO of -1.43 (test nMSE
-    ~1.0), separate runs reached -0.13 (nMSE 0.10) and improved every other joint, in less time.
+    so an output whose climb is slow can stop far from its optimum; separate runs reach it and
+    improve the other outputs too, in less time.
 
     ``rounds``: up to this many runs of ``max_iter`` iterations, each from the last one's optimum,
     another only while the last gained more than ``climb_tol`` per sample (a climb cut short far
-    from its optimum). On the real SARCOS (joint 6, 2,000 rows, after the 300-row coarse climb) one
-    run of 16 iterations stopped at a per-sample LOO of -1.30 with noise 0.34 of the variance
-    (test nMSE 0.066 on all rows), 50 iterations reached +0.82 with noise 0.002.
+    from its optimum: it stops with a large noise term holding what the GP should explain).
 
     ``shared_starts`` (with ``independent``): every output climbs a second time from the best
     output's optimum (:func:`restart_from_best_output`).
@@ -272,13 +269,10 @@ def restart_from_best_output(parts: list[tuple[Hyper, float]],
 
     Why: the outputs (a robot's joint torques) are functions of the same inputs and often share
     their geometry, while one output's own climb can settle in a basin that explains it by the
-    wrong inputs. Real Barrett WAM, joint 4 (2,000 rows after the 300-row coarse climb): its own
-    climb ends with the smooth-sign input at lengthscale 0.12, per-sample LOO +1.14, test nMSE of
-    the exact GP on all rows 0.025; climbed from joint 3's or joint 5's optimum it reaches short
-    joint-angle lengthscales and ignores the sign, LOO +1.60, test nMSE 7e-8. Objectives per
-    sample of standardised outputs on the same rows are comparable, so the output that reached
-    the highest is the donor. Cost: one more refinement per output but one (WAM, 12,000 rows,
-    7 joints, 2 cores: ``train --modes 1 --no-disturbance`` 457 -> 773-787 s).
+    wrong inputs; climbed from a neighbour's optimum it can find the geometry its own climb
+    missed. Objectives per sample of standardised outputs on the same rows are comparable, so
+    the output that reached the highest is the donor. Cost: one more refinement per output but
+    one.
     """
     values = np.array([v for _, v in parts], dtype=float)
     if not np.isfinite(values).any():

@@ -2,11 +2,10 @@
 
 Chosen on evidence (benchmarks/bench_real_gp.py, same hyperparameters for both options): SGPR
 with 1,000 inducing inputs over all samples vs an exact GP on a random 3,000-sample subset
-("subset of data", ``method="subset"``). Real SARCOS: SGPR better on 7/7 joints (mean nMSE
-0.0038 vs 0.0048). Real Barrett WAM: subset better on average (0.0450 vs 0.0585; SGPR better on
-joints 1 and 5, worse on 3, 6, 7, whose short lengthscales 1,000 inducing points cannot resolve).
-SGPR stays the default because it uses every sample and its error keeps falling with M (M=500:
-0.0923 / 0.0088); both beat scikit-learn's exact GP on a 1,500-row subset on 7/7 joints.
+("subset of data", ``method="subset"``). The subset can win where lengthscales are shorter than
+the inducing inputs resolve; SGPR stays the default because it uses every sample and its error
+keeps falling with M; both beat scikit-learn's exact GP on a smaller subset (figures:
+benchmarks/README.md).
 
 Model, per output j (a loop over outputs, to keep memory at O(M^2 + M * chunk)):
 inducing inputs Z (M, d) are k-means centres of the standardised inputs (shared by all outputs);
@@ -45,8 +44,7 @@ from .kernels import rbf_kernel
 from .linalg import DTYPE, exact_fits, resolve_device, robust_cholesky
 
 #: "auto" conditions an exact GP on every sample up to this many (memory permitting), an SGPR
-#: above: real Barrett WAM (12,000 rows, same hyperparameters), exact on all rows mean nMSE
-#: 0.0216 vs SGPR M=3,000 0.0333 vs subset of data 3,000 0.0575, at about the SGPR's time
+#: above: up to it, the exact GP on every row was the more accurate at about the SGPR's time
 #: (benchmarks/README.md, "Training that scales")
 EXACT_MAX_SAMPLES = 16000
 #: GP kinds a caller may ask for
@@ -254,8 +252,8 @@ def choose_gp_method(n_samples: int, method: str = "auto", device=None, *,
     "exact" (every sample, exact) up to ``exact_threshold`` samples when one output's kernel
     matrix and its factor fit the free memory of ``device`` (:func:`mmgp.gp.linalg.exact_fits`),
     else "sgpr" (every sample, O(N M^2) time, O(M^2 + M chunk) memory). "subset" (subset of
-    data) is never chosen by "auto": it was less accurate than SGPR at the same size on the real
-    Barrett WAM and SARCOS (benchmarks/README.md, "Training that scales")."""
+    data) is never chosen by "auto": it was less accurate than SGPR at the same size on real arms
+    (benchmarks/README.md, "Training that scales")."""
     if method not in GP_METHODS:
         raise ValueError(f"GP method must be one of {', '.join(GP_METHODS)}, got {method!r}")
     if method != "auto":

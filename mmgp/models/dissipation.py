@@ -103,8 +103,7 @@ def _odd_z(sem, k: int, rows: np.ndarray, X: np.ndarray, basis, rev: VelocityRev
     ``with_noise``, the mode's noise variance: the GP's noise term holds what the model cannot
     explain, model error included, and the latent variance alone (from a support of 1,000
     samples) ignores that error: on frictionless arms it called a model with no friction
-    injecting (validation val06, val07; benchmarks/README.md, "The friction check on
-    frictionless arms")."""
+    injecting (benchmarks/README.md, "The friction check on frictionless arms")."""
     Xr = X[rows]
     odd = odd_part(sem.gps_[k], sem.coef_[k], Xr, None if basis is None else basis[rows], rev)
     var_gp = _variance_gp(sem, k)

@@ -167,8 +167,8 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
         # Dry friction per joint, last: Coulomb (smooth sign) and load-dependent (sign x |tau_rbd|,
         # gear friction growing with the load), as physics in the mean, so a sliding branch seen
         # once is still predicted and the band at rest grows with the load (MultimodalGP
-        # rest_band). No viscous column: fitted, it extrapolated 10x the true damping at speed
-        # (tuning lever1004).
+        # rest_band). No viscous column: fitted, it extrapolated far beyond the true damping at
+        # speed.
         sign = dry_friction_sign(dq, friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
         basis = np.concatenate([basis, friction_columns(sign), friction_columns(sign * np.abs(tau_rbd))], axis=2)
     return Features(X, Y, tau_rbd, list(starts), basis=basis, has_sign=friction_scale is not None)

@@ -231,7 +231,7 @@ class ModeFitter:
         noise) the blur: the branches are where the model has data, while the sample's own
         state (sign near 0) may have none. Out of window like the mode's own predictions
         (``support``: the GP's samples): in-sample, a GP that has memorised a push at a pose
-        visited once puts the band on the push (validation val04: 23% of the pushes missed).
+        visited once puts the band on the push, and the push is missed.
         Elsewhere: centre 0, width 0, variance 1.
         """
         T, n = self.Y.shape
@@ -351,7 +351,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
             # loaded joint from the scale mixture (pushed_logpdf). Pushed at rest, the joint
             # would still hold its band; modelling that (the band blurred by Sigma_d) was
-            # measured worse (tuning lever1010 0.933 -> 0.860 unperturbed correct).
+            # measured worse (fewer undisturbed samples classified correctly).
             lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
         cols = [k, K + k] if disturbance else [k]
         loglik[:, cols] = _mode_columns(lu, lp, fitter.hold, fitter.muted)
@@ -425,8 +425,7 @@ def hold_weights(rest: np.ndarray, starts: Sequence[int] = (0,)) -> np.ndarray:
     with that latent value integrated out differ by the one draw's density ratio (the noise
     terms cancel), which the mean of the L per-sample log densities approximates. Counted L
     times, a hold a little more likely pushed than stuck (its torque near the band's middle,
-    where N(0, Sigma_d) is denser than the band) was flagged whole: old held-out lever1065281,
-    no pushes, 7.2% flagged with the band, 0% with this."""
+    where N(0, Sigma_d) is denser than the band) was flagged whole, on logs without a push."""
     out = np.ones(rest.shape)
     for j in range(rest.shape[1]):
         resting = rest[:, j] > 0.5

@@ -3,8 +3,7 @@
 The disturbance state of the chain judges each sample alone against a wide zero-mean spread
 (at least ``push_floor_z`` predictive standard deviations), so a light push that holds the
 torque 1-3 standard deviations off for half a second is never favoured sample by sample,
-however long it lasts (validation val11: 5 whole pushes peaking at 1-3x the harness's
-significance threshold were missed). Averaged over ``w`` samples, the standardised residual of
+however long it lasts. Averaged over ``w`` samples, the standardised residual of
 such a push stands 1-3 x sqrt(w) of the average's own spread off, while model error averages
 out. The average's spread is measured, not assumed (robustly, on the samples the labels call
 undisturbed), so residuals that are correlated in time do not pass for pushes.

@@ -117,11 +117,10 @@ class MultimodalSEM:
         how many observed pushes that prior is worth.
     push_floor_z : a push is at least this many predictive standard deviations (Sigma_d floor).
     min_push_s : a push lasts at least this long, seconds: flagged stretches of the final labels
-        shorter than this are set undisturbed (needs ``t``). Pushes last 0.2-3 s; on a UR5 log
-        with Coulomb friction and no push at all, 5.4% of the samples were flagged in stretches
-        of at most 0.14 s, at velocity reversals. Only the final labels: applied after every
-        E-step, the short first flags of light pushes joined the GP's training samples, the GP
-        learnt the push and five of 21 pushes vanished (validation val11: missed 0.31 -> 0.40).
+        shorter than this are set undisturbed (needs ``t``). Pushes last 0.2-3 s; with Coulomb
+        friction and no push at all, short stretches at velocity reversals get flagged. Only the
+        final labels: applied after every E-step, the short first flags of light pushes joined
+        the GP's training samples, the GP learnt the push and the push vanished.
     push_scan_s, push_scan_z : a push is a sustained offset: in the final labels, undisturbed
         samples whose residual (standardised, averaged over ``push_scan_s`` seconds of
         undisturbed samples) stands more than ``push_scan_z`` robust standard deviations of that

@@ -22,7 +22,7 @@ from typing import ClassVar, Sequence
 import numpy as np
 
 from .context import Context
-from .identification import body_deltas
+from .identification import body_deltas, body_parameters
 from .inertial import point_mass_parameters
 from .payload import com_from_moments, linearised_columns
 
@@ -498,11 +498,11 @@ class AttachedBody(Effect):
 
 
 class InertialParameters(Effect):
-    """The rigid body re-identified: the base parameters the trajectory determines
-    (``ctx.base``, :func:`mmgp.physics.identification.base_parameters`) move by ``beta`` from the
-    nominal ones; columns are the regressor's independent columns. Reported per CONTRACT 1.1 as
+    """The rigid body re-identified: the base parameters the trajectory determines (``ctx.base``)
+    move by ``beta`` from the nominal ones (columns: the regressor's independent ones). Reported as
     ``inertial_parameters`` for the whole model (``link`` null): ``base`` (name -> identified
-    minus nominal) and ``delta`` per body for what the base parameters determine."""
+    minus nominal), ``delta`` per body for what they determine, ``bodies`` the consistent fit's
+    changed bodies whole (in the corrected model; beyond CONTRACT 1.2's keys)."""
 
     name = "inertial_parameters"
     label = "inertial parameters different from the URDF's"
@@ -529,9 +529,9 @@ class InertialParameters(Effect):
         names = self.base.names
         params = {"base": {nm: float(coef[a]) for nm, a in zip(names, atoms)}}
         if ("pi", 0) in coef and self.pi0 is not None:
-            # the full change a physically consistent fit chose; only what the data fix is told
-            dpi = np.array([coef[("pi", i)] for i in range(len(self.pi0))])
-            params = {"delta": body_deltas(self.pi0, self.pi0 + dpi, self.base), **params}
+            # the physically consistent fit's bodies: what the data fix (delta) and whole (bodies)
+            pi = self.pi0 + np.array([coef[("pi", i)] for i in range(len(self.pi0))])
+            params = {"delta": body_deltas(self.pi0, pi, self.base), **params, "bodies": body_parameters(self.pi0, pi, self.base)}
         return params, {"base": {nm: _std(cov, a) for nm, a in zip(names, atoms)}}
 
     def coefficients(self, params):

@@ -170,6 +170,29 @@ def body_quantities(pi: np.ndarray) -> dict:
     return {"mass": m, "com": com, "inertia": unvech(pi[4:10]) - m * unvech(point_mass_inertia(com))}
 
 
+def _inertia6(I: np.ndarray) -> list:
+    """[Ixx, Iyy, Izz, Ixy, Ixz, Iyz] of a (3, 3) inertia (CONTRACT order)."""
+    return [float(I[0, 0]), float(I[1, 1]), float(I[2, 2]), float(I[0, 1]), float(I[0, 2]), float(I[1, 2])]
+
+
+def body_parameters(pi0: np.ndarray, pi: np.ndarray, base: BaseParameters, rtol: float = 1e-9) -> dict:
+    """The bodies of ``pi`` (P,) that differ from ``pi0`` (P,), whole: {body: {"mass": kg, "com":
+    [3] m, "inertia": [Ixx, Iyy, Izz, Ixy, Ixz, Iyz] kg*m^2 about the com}} (link frame). A
+    physically consistent fit's bodies are one mass distribution with the identified base
+    parameters; a model built from them predicts what the base parameters predict, where
+    :func:`body_deltas` may name nothing (no single body's quantity identifiable). A body no base
+    parameter involves (its columns left out, e.g. a payload link's) is not the fit's to change."""
+    out = {}
+    scale = max(float(np.abs(pi0).max()), 1e-300)
+    for k, name in enumerate(base.body_names):
+        a, b = pi0[10 * k:10 * k + 10], pi[10 * k:10 * k + 10]
+        if not np.abs(base.regroup[:, 10 * k:10 * k + 10]).any() or np.abs(b - a).max() <= rtol * scale:
+            continue
+        q = body_quantities(b)
+        out[name] = {"mass": q["mass"], "com": [float(x) for x in q["com"]], "inertia": _inertia6(q["inertia"])}
+    return out
+
+
 def body_deltas(pi0: np.ndarray, pi: np.ndarray, base: BaseParameters) -> dict:
     """Per body, identified minus nominal for what the base parameters determine (CONTRACT
     ``inertial_parameters`` ``delta``): {body: {"mass": kg, "com": [3] m, "inertia": [Ixx, Iyy,
@@ -185,9 +208,7 @@ def body_deltas(pi0: np.ndarray, pi: np.ndarray, base: BaseParameters) -> dict:
         if ok["com"]:
             d["com"] = [float(x) for x in b["com"] - a["com"]]
         if ok["inertia"]:
-            D = b["inertia"] - a["inertia"]
-            d["inertia"] = [float(D[0, 0]), float(D[1, 1]), float(D[2, 2]), float(D[0, 1]), float(D[0, 2]),
-                            float(D[1, 2])]
+            d["inertia"] = _inertia6(b["inertia"] - a["inertia"])
         if d:
             out[name] = d
     return out

@@ -24,6 +24,11 @@ NOSLIP_ITERATIONS = 10
 JOINT_PROPERTIES = ("frictionloss", "damping", "armature", "stiffness", "springref")
 
 
+#: name of the MJCF ``<numeric>`` holding the per-joint velocity scale v_s (rad/s) of the dry
+#: friction law ``frictionloss * tanh(dq / v_s)`` (``mmgp.sim.inverse_dynamics`` reads it)
+FRICTION_VELOCITY = "mmgp_friction_velocity"
+
+
 def reduced_pinocchio_model(urdf_path: str, joint_names: Sequence[str] | None = None):
     """Pinocchio model of ``urdf_path`` with every joint outside ``joint_names`` locked at its
     neutral position (fixed base). ``joint_names=None`` keeps all joints. Joint order of the
@@ -183,7 +188,7 @@ def _body_lines(model, j: int, depth: int, props, extras: dict[int, list[str]], 
 
 def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, frictionloss=None, damping=None,
                armature=None, stiffness=None, springref=None, payload: dict | None = None,
-               tendons: Sequence[dict] = (), comment: str | None = None,
+               tendons: Sequence[dict] = (), comment: str | None = None, friction_velocity=None,
                timestep: float = 0.001, gravity: bool = True) -> str:
     """MJCF XML of a fixed-base robot, built from Pinocchio's parse of ``urdf_path``.
 
@@ -205,7 +210,9 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
 
     ``tendons``: fixed tendons, each ``{"name", "joints": [(joint name, coef), ...], "frictionloss"
     (N*m), "damping" (N*m*s/rad), "armature" (kg*m^2)}`` (:func:`tendon_element`). ``comment``: text
-    of an XML comment put before the ``<mujoco>`` element.
+    of an XML comment put before the ``<mujoco>`` element. ``friction_velocity`` (n,) rad/s: the
+    velocity scale v_s of the friction law the values were fitted with, written as the custom
+    numeric :data:`FRICTION_VELOCITY` (MuJoCo's own solver does not read it).
 
     Each joint gets a body named after the URDF link it moves, a ``<site>`` for every URDF link
     frame (named after the link) and a plain torque motor named after the joint (gear 1, no
@@ -241,7 +248,7 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
     return f"""{xml_comment(comment)}<mujoco model={quoteattr(Path(urdf_path).stem)}>
   <compiler angle="radian" autolimits="true" balanceinertia="false" boundmass="0" boundinertia="0"/>
 {option_element(timestep, gravity)}
-  <worldbody>
+{_custom_element(friction_velocity, model.nv)}  <worldbody>
     {world_payload}
 {chr(10).join(lines)}
   </worldbody>
@@ -250,6 +257,16 @@ def build_mjcf(urdf_path: str, joint_names: list[str] | None = None, *, friction
   </actuator>
 </mujoco>
 """
+
+
+def _custom_element(friction_velocity, n: int) -> str:
+    """``<custom>`` with the :data:`FRICTION_VELOCITY` numeric (n,) (empty for None)."""
+    if friction_velocity is None:
+        return ""
+    v = np.broadcast_to(np.asarray(friction_velocity, dtype=np.float64), (n,))
+    if not (np.isfinite(v).all() and (v >= 0).all()):
+        raise ValueError(f"friction_velocity must be finite and non-negative, got {v}")
+    return f'  <custom>\n    <numeric name="{FRICTION_VELOCITY}" data="{" ".join(f"{x:.17g}" for x in v)}"/>\n  </custom>\n'
 
 
 def coupling_tendon(joint: str, params: dict) -> dict:

@@ -20,7 +20,7 @@ except ImportError as exc:  # the one message a user without the extra sees
                       "(pip install 'mmgp[sim]')") from exc
 
 from .excitation import fourier_reference, push_schedule, sines_reference, sinusoid_reference
-from .inverse import explained_share, inverse_dynamics
+from .inverse import FRICTION_VELOCITY, explained_share, friction_velocity, inverse_dynamics
 from .mjcf import (NOSLIP_ITERATIONS, body_name, build_mjcf, load_model, panda_urdf_path, reduced_pinocchio_model,
                    robot_urdf_path, set_payload)
 from .recording import LABEL_RULE, Push, Recording, contract_disturbed, simulate
@@ -28,8 +28,8 @@ from .scenarios import (PANDA, PANDA_JOINTS, REPLICA, actuator_replica, panda_mo
                         replica_mjcf)
 
 __all__ = [
-    "LABEL_RULE", "NOSLIP_ITERATIONS", "PANDA", "PANDA_JOINTS", "REPLICA", "Push", "Recording",
-    "actuator_replica", "body_name", "build_mjcf", "contract_disturbed", "explained_share", "fourier_reference",
+    "FRICTION_VELOCITY", "LABEL_RULE", "NOSLIP_ITERATIONS", "PANDA", "PANDA_JOINTS", "REPLICA", "Push", "Recording",
+    "actuator_replica", "body_name", "build_mjcf", "contract_disturbed", "explained_share", "fourier_reference", "friction_velocity",
     "inverse_dynamics", "load_model",
     "panda_modes", "panda_urdf_path", "push_schedule", "random_link_pushes", "reduced_pinocchio_model",
     "replica_mjcf", "robot_urdf_path", "set_payload", "simulate", "sines_reference", "sinusoid_reference",

@@ -536,17 +536,17 @@ def write_scenario(rec: Recording, folder: str | Path, stem: str) -> tuple[Path,
     """Write ``stem.parquet`` (the log; a lever's URDF ``stem.urdf`` beside it, named in the log's
     metadata), ``stem.labels.parquet`` and ``stem.spec.json`` in ``folder``. Returns (log, labels)."""
     from ..data.logs import write_log
-    from ..data.outputs import write_table
+    from ..data.outputs import atomic_write_text, write_table
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     urdf = None
     if rec.info.get("urdf_text"):
         urdf = f"{stem}.urdf"
-        (folder / urdf).write_text(rec.info["urdf_text"])
+        atomic_write_text(folder / urdf, rec.info["urdf_text"])
     log, labels = folder / f"{stem}.parquet", folder / f"{stem}.labels.parquet"
     write_log(log, rec.t, rec.q, rec.tau, dq=rec.dq, ddq=rec.ddq, robot=rec.info.get("robot"), urdf=urdf,
               joint_names=rec.info.get("joint_names"))
     write_table(labels, rec.labels, metadata={"label_rule": rec.info.get("label_rule", LABEL_RULE)})
-    (folder / f"{stem}.spec.json").write_text(json.dumps(rec.info["spec"], indent=1))
+    atomic_write_text(folder / f"{stem}.spec.json", json.dumps(rec.info["spec"], indent=1))
     return log, labels

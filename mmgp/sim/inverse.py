@@ -6,23 +6,33 @@ springs). MuJoCo treats ``frictionloss`` as a soft constraint: its force in ``qf
 comes from the constraint solver for the given ``qacc``, anywhere within the friction band, not
 ``frictionloss * sign(dq)``. :func:`inverse_dynamics` therefore switches friction loss off
 (``mjDSBL_FRICTIONLOSS``; the models mmgp writes have no other constraints) and adds the law
-the diagnosis fits: ``frictionloss * sign(dq)`` per joint and ``J^T frictionloss * sign(J dq)``
-per tendon. Units: rad, rad/s, rad/s^2, N*m; shapes (T, n).
+the diagnosis fits: ``frictionloss * tanh(dq / v_s)`` per joint and ``J^T frictionloss * tanh(J dq
+/ v_w)`` per tendon, ``v_w = sqrt(sum_i (J_i v_s_i)^2)`` (``mmgp.physics.effects``). ``v_s`` (rad/s,
+per joint) is the velocity scale the diagnosis fitted with, which ``corrected.xml`` carries as the
+custom numeric :data:`FRICTION_VELOCITY`; a model without it gets ``sign``. The two differ where
+a joint stands still: there static friction takes any value in its band, and the smooth law
+predicts its middle, zero, where ``sign`` of a velocity at noise level (a filtered standstill
+reads 1e-15 rad/s) adds the whole level with a coin-flip sign. Units: rad, rad/s, rad/s^2, N*m;
+shapes (T, n).
 """
 from __future__ import annotations
 
 import mujoco
 import numpy as np
 
+from ..physics.mjcf import FRICTION_VELOCITY
 
-def inverse_dynamics(model, q, dq, ddq) -> np.ndarray:
+
+def inverse_dynamics(model, q, dq, ddq, v_s=None) -> np.ndarray:
     """(T, n) joint torque (N*m) that moves ``model`` (a ``mujoco.MjModel`` whose qpos and qvel
     are the n hinge/slide joints, e.g. ``corrected.xml``) along ``q``, ``dq``, ``ddq`` (T, n):
-    rigid body, armature, damping, springs and dry friction as ``frictionloss * sign(velocity)``."""
+    rigid body, armature, damping, springs and dry friction as ``frictionloss * tanh(dq / v_s)``.
+    ``v_s`` (n,) rad/s: default the model's :data:`FRICTION_VELOCITY` numeric, else 0 (``sign``)."""
     q, dq, ddq = (np.atleast_2d(np.asarray(x, dtype=np.float64)) for x in (q, dq, ddq))
     if not (model.nq == model.nv == q.shape[1]) or q.shape != dq.shape or q.shape != ddq.shape:
         raise ValueError(f"q, dq, ddq must be (T, {model.nv}) with one angle per joint (model nq={model.nq}, "
                          f"nv={model.nv}); got {q.shape}, {dq.shape}, {ddq.shape}")
+    v_s = friction_velocity(model) if v_s is None else np.broadcast_to(np.asarray(v_s, dtype=np.float64), (model.nv,))
     saved = model.opt.disableflags
     model.opt.disableflags = saved | mujoco.mjtDisableBit.mjDSBL_FRICTIONLOSS
     try:
@@ -32,11 +42,30 @@ def inverse_dynamics(model, q, dq, ddq) -> np.ndarray:
             data.qpos[:], data.qvel[:], data.qacc[:] = q[t], dq[t], ddq[t]
             mujoco.mj_inverse(model, data)
             J = tendon_jacobian(model, data)
-            out[t] = (data.qfrc_inverse + model.dof_frictionloss * np.sign(dq[t])
-                      + J.T @ (model.tendon_frictionloss * np.sign(J @ dq[t])))
+            v_w = np.sqrt(((J * v_s) ** 2).sum(axis=1))  # the tendon's velocity noise from its joints'
+            out[t] = (data.qfrc_inverse + model.dof_frictionloss * smooth_sign(dq[t], v_s)
+                      + J.T @ (model.tendon_frictionloss * smooth_sign(J @ dq[t], v_w)))
     finally:
         model.opt.disableflags = saved
     return out
+
+
+def friction_velocity(model) -> np.ndarray:
+    """(nv,) the dry friction's velocity scale v_s (rad/s) ``model`` carries (:data:`FRICTION_VELOCITY`),
+    zeros (``sign``) when it carries none."""
+    for i in range(model.nnumeric):
+        if mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_NUMERIC, i) == FRICTION_VELOCITY:
+            adr, size = model.numeric_adr[i], model.numeric_size[i]
+            if size != model.nv:
+                raise ValueError(f"numeric {FRICTION_VELOCITY!r} has {size} values for {model.nv} joints")
+            return np.array(model.numeric_data[adr:adr + size], dtype=np.float64)
+    return np.zeros(model.nv)
+
+
+def smooth_sign(v: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """tanh(v / scale), elementwise; sign(v) where scale is 0."""
+    scale = np.asarray(scale, dtype=np.float64)
+    return np.where(scale > 0, np.tanh(v / np.where(scale > 0, scale, 1.0)), np.sign(v))
 
 
 def tendon_jacobian(model, data) -> np.ndarray:
