@@ -124,3 +124,55 @@ def test_a_first_fit_that_injects_energy_is_not_returned():
     assert d["chosen"] > 0 and d["physical"] and d["runner_up_gap"] > 0
     f = classification_figures(model.labels_, rec.labels)
     assert f["unperturbed_correct"] >= 0.95 and f["perturbed_missed"] <= 0.05
+
+
+def test_effective_sample_size_matches_the_ar1_closed_form():
+    from mmgp.models.dissipation import effective_sample_size
+
+    rng = np.random.default_rng(3)
+    n = 20000
+    for rho in (0.0, 0.5, 0.9):
+        e = rng.standard_normal(n)
+        x = np.empty(n)
+        x[0] = e[0]
+        for t in range(1, n):
+            x[t] = rho * x[t - 1] + np.sqrt(1 - rho ** 2) * e[t]
+        expected = n * (1 - rho) / (1 + rho)
+        assert abs(effective_sample_size(x) - expected) < 0.15 * expected
+    assert effective_sample_size(np.ones(50)) == 1.0
+
+
+def _ar1(rng, n, rho):
+    x = np.empty(n)
+    x[0] = rng.standard_normal()
+    for t in range(1, n):
+        x[t] = rho * x[t - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal()
+    return x
+
+
+def test_depth_test_is_calibrated_on_dissipative_series_and_ignores_a_lone_glitch():
+    """Monte Carlo: z-scores of a model exactly at the dissipation boundary (zero-mean, unit
+    spread; white and strongly correlated) reject at most about as often as the level says."""
+    from mmgp.models.dissipation import depth_p_value, effective_sample_size
+
+    rng = np.random.default_rng(4)
+    for rho in (0.0, 0.95):
+        ps = []
+        for _ in range(300):
+            z = _ar1(rng, 600, rho)
+            ps.append(depth_p_value(z, effective_sample_size(z)))
+        assert np.mean(np.array(ps) < 0.05) <= 0.08
+    z = rng.standard_normal(600)
+    z[300] = -15.0                                   # one sample at a log's edge
+    assert depth_p_value(z, effective_sample_size(z)) > 0.05
+
+
+def test_depth_test_finds_a_region_whose_friction_injects_energy():
+    # The replica's wrong basin: 30 consecutive samples at -5 standard deviations among
+    # dissipative ones (z around +3).
+    from mmgp.models.dissipation import depth_p_value, effective_sample_size
+
+    rng = np.random.default_rng(5)
+    z = 3.0 + 0.3 * _ar1(rng, 300, 0.9)
+    z[100:130] = -5.0 + 0.3 * rng.standard_normal(30)
+    assert depth_p_value(z, effective_sample_size(z)) < 1e-3

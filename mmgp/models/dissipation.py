@@ -37,11 +37,10 @@ VARIANCE_SUPPORT = 1000
 # A sliding sample injects energy when its friction's sign is wrong by more than this many
 # predictive standard deviations (one-sided: a dissipative model crosses it on ~2.3% of samples).
 Z_INJECT = 2.0
-# A joint's friction injects energy when more of its sliding samples cross Z_INJECT than this
-# many times the share a dissipative model crosses by chance (its predictions along a trajectory
-# are correlated, so the share scatters far more than a binomial one): frictionless arms reached
-# 1.4-2.7 times, the wrong basins of the replica 5.9-16 times (benchmarks/README.md).
-CHANCE_FACTOR = 4.0
+# Family-wise level of the check: a model is called injecting when, on some mode and joint, its
+# friction stays deeper in the wrong sign than a dissipative model's would at this level
+# (:func:`depth_p_value`, Bonferroni over the modes and joints judged).
+ALPHA = 0.05
 
 
 @dataclass
@@ -122,13 +121,19 @@ def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReve
     """Per mode and joint, over the mode's undisturbed samples where the joint slides (|dq| above
     its smooth-sign scale; at most ``max_points`` of them, evenly spaced): ``injected`` the share
     whose friction torque has the motion's sign by more than :data:`Z_INJECT` standard
-    deviations, ``work_share`` the friction work done on the joint there divided by the total
-    |work| (0: all dissipated, 1: all injected). ``worst`` the largest ``injected``;
-    ``physical`` whether no joint of any mode exceeds :data:`CHANCE_FACTOR` times the share a dissipative model shows by chance (~2.3%)."""
+    deviations, ``n_eff`` the effective number of independent samples behind that share (the
+    odd part is a smooth function along the trajectory, so its crossings come in runs),
+    ``work_share`` the friction work done on the joint there divided by the total |work| (0: all
+    dissipated, 1: all injected), ``p_depth`` the probability that a dissipative model's friction
+    stays as deep in the wrong sign (:func:`depth_p_value`). ``worst`` the largest ``injected``
+    (what the report shows); ``p_value`` the smallest ``p_depth``, Bonferroni-corrected over the
+    modes and joints judged; ``physical``: ``p_value`` >= :data:`ALPHA`."""
     dq, sliding = _sliding(X, rev)
     labels, clean = sem.labels_, ~sem.disturbed_
     injected = np.zeros((len(sem.gps_), dq.shape[1]))
-    work = np.zeros_like(injected)
+    work, n_eff = np.zeros_like(injected), np.zeros_like(injected)
+    p_depth = np.ones_like(injected)
+    judged = 0
     for k in range(len(sem.gps_)):
         rows = evenly_spaced(np.flatnonzero((labels == k) & clean & sliding.any(1)), max_points)
         if not len(rows):
@@ -138,12 +143,62 @@ def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReve
             on = sliding[rows, j]
             if not on.any():
                 continue
+            judged += 1
             injected[k, j] = float(np.mean(z[on, j] < -Z_INJECT))
+            n_eff[k, j] = effective_sample_size(z[on, j])
+            p_depth[k, j] = depth_p_value(z[on, j], n_eff[k, j])
             power = odd[on, j] * dq[rows[on], j]
             work[k, j] = float(np.clip(-power, 0, None).sum() / max(np.abs(power).sum(), 1e-300))
-    worst = float(injected.max()) if injected.size else 0.0
-    return {"injected": injected.round(4).tolist(), "work_share": work.round(4).tolist(), "worst": worst,
-            "physical": worst <= CHANCE_FACTOR * _chance_share()}
+    p = float(min(1.0, p_depth.min() * max(judged, 1)))
+    return {"injected": injected.round(4).tolist(), "n_eff": n_eff.round(1).tolist(), "p_depth": p_depth.tolist(),
+            "work_share": work.round(4).tolist(), "worst": float(injected.max()) if injected.size else 0.0,
+            "p_value": p, "physical": p >= ALPHA}
+
+
+def effective_sample_size(x: np.ndarray) -> float:
+    """Effective number of independent samples in the series ``x`` (M,): M / (1 + 2 sum of its
+    autocorrelations), the sum truncated where consecutive pairs of autocorrelations stop being
+    positive (Geyer's initial positive sequence). An AR(1) series with coefficient rho gives
+    M (1 - rho) / (1 + rho) for large M; a constant series (no information on its correlation)
+    counts as one sample."""
+    x = np.asarray(x, dtype=np.float64)
+    M = len(x)
+    if M < 2:
+        return float(M)
+    x = x - x.mean()
+    energy = float(x @ x)
+    if energy <= 1e-300:
+        return 1.0
+    f = np.fft.rfft(x, 2 * M)
+    rho = np.fft.irfft(f * np.conj(f))[:M] / energy
+    pairs = rho[: 2 * (M // 2)].reshape(-1, 2).sum(1)
+    stop = np.flatnonzero(pairs <= 0)
+    tau = 2.0 * pairs[: stop[0] if len(stop) else len(pairs)].sum() - 1.0
+    return float(np.clip(M / max(tau, 1.0), 1.0, M))
+
+
+def depth_p_value(z: np.ndarray, n_eff: float) -> float:
+    """How likely a dissipative model's odd part stays as deep in the wrong sign as ``z`` (M,)
+    does, ``z`` the z-scores with the motion's sign along the trajectory (time order), each at
+    least N(0, 1) under dissipation, ``n_eff`` their effective number of independent samples.
+
+    The depth is the lowest median of ``z`` over a window of W = max(3, M / n_eff) consecutive
+    samples (one effective sample's worth, and at least three: a lone glitch at a log's edge,
+    where the velocity is poorly estimated, is not evidence of friction). A window's median is
+    at least N(0, 1) under dissipation (correlated samples: a spread of at most one), and the
+    sliding windows hold about 2 M / W independent ones, so the deepest is that deep with
+    probability 1 - (1 - Phi(depth))^(2 M / W)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+    from scipy.stats import norm
+
+    z = np.asarray(z, dtype=np.float64)
+    M = len(z)
+    if M == 0 or n_eff <= 0:
+        return 1.0
+    W = int(min(M, max(3, np.ceil(M / n_eff))))
+    depth = float(np.median(sliding_window_view(z, W), axis=1).min())
+    windows = max(1.0, 2.0 * M / W)
+    return float(-np.expm1(windows * norm.logsf(depth)))
 
 
 def _sliding(X: np.ndarray, rev: VelocityReversal) -> tuple[np.ndarray, np.ndarray]:
@@ -183,8 +238,9 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
     disturbed and undisturbed labels swapped where its friction injects energy
     (:func:`injecting_samples`: where a push that opposed the motion was taken for friction, the
     clean motion was called disturbed). Returns the model with the highest log marginal
-    likelihood among those that do not inject energy (among all of them where none qualifies)
-    and a record of each fit (its check and log marginal likelihood) and the choice."""
+    likelihood among those that do not inject energy (where none qualifies, the one whose
+    check's p-value is largest) and a record of each fit (its check and log marginal
+    likelihood) and the choice."""
     basis = fit_kw.get("basis")
     X = np.asarray(X, dtype=np.float64)
     if first is None:
@@ -203,7 +259,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
         fits.append(make_sem().fit(X, Y, init_states=states, **fit_kw))
         checks.append(energy_check(fits[-1], X, basis, rev))
     evidence = [float(m.log_marginal_) for m in fits]
-    pool = [i for i, c in enumerate(checks) if c["physical"]] or list(range(len(fits)))
+    pool = [i for i, c in enumerate(checks) if c["physical"]] or [int(np.argmax([c["p_value"] for c in checks]))]
     best = max(pool, key=lambda i: evidence[i])
     record = {"fits": [{"log_marginal": e, **c} for e, c in zip(evidence, checks)], "chosen": best,
               "physical": checks[best]["physical"]}

@@ -81,7 +81,8 @@ class Features:
             load = np.abs(self.tau_rbd)
             branches = tuple(np.concatenate([self.basis[..., :-2 * n], friction_columns(np.full_like(load, s)),
                                              friction_columns(s * load)], axis=2) for s in (1.0, -1.0))
-        return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches)
+        dry = list(range(self.basis.shape[2] - 2 * n, self.basis.shape[2])) if branches is not None else []
+        return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches, dry)
 
 
     def velocity_reversal(self, basis_kind: str | None):
@@ -168,9 +169,21 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
         # once is still predicted and the band at rest grows with the load (MultimodalGP
         # rest_band). No viscous column: fitted, it extrapolated far beyond the true damping at
         # speed.
-        sign = np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
+        sign = dry_friction_sign(dq, friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
         basis = np.concatenate([basis, friction_columns(sign), friction_columns(sign * np.abs(tau_rbd))], axis=2)
     return Features(X, Y, tau_rbd, list(starts), basis=basis, has_sign=friction_scale is not None)
+
+
+def dry_friction_sign(dq: np.ndarray, friction_scale: np.ndarray) -> np.ndarray:
+    """(T, n) the direction dry friction acts in, per joint: the velocity's sign where the joint
+    slides (rest weight at most 1/2, :func:`~mmgp.physics.context.rest_weight`), the smooth sign
+    ``tanh(dq / v_s)`` where it may be stuck. Coulomb friction is a step: a joint creeping at
+    half the smooth-sign scale already slides against its whole friction, and a column that gave
+    it half would leave the other half to whatever else the mean can bend (a payload's gravity
+    column). Where it may be stuck the band at rest (:class:`~mmgp.models.mstep.RestBand`) reads
+    the torque instead."""
+    sliding = rest_weight(dq, friction_scale) <= 0.5
+    return np.where(sliding, np.sign(dq), np.tanh(dq / friction_scale))
 
 
 def friction_columns(v: np.ndarray) -> np.ndarray:

@@ -120,11 +120,13 @@ class RestBand:
     ``weight`` (T, n) rest weights in [0, 1] (:func:`mmgp.physics.context.rest_weight`),
     ``sign_cols`` (n,) the columns of X holding each joint's smooth velocity sign,
     ``basis_branches`` the basis (T, n, p) with every joint's velocity sign set to +1 and to -1
-    (None: the basis does not depend on the sign)."""
+    (None: the basis does not depend on the sign), ``dry_cols`` the basis columns of dry friction
+    (their coefficients are friction levels: non-negative)."""
 
     weight: np.ndarray
     sign_cols: Sequence[int]
     basis_branches: tuple[np.ndarray, np.ndarray] | None = None
+    dry_cols: Sequence[int] = ()
 
 
 class ModeFitter:
@@ -151,6 +153,7 @@ class ModeFitter:
         self.hold = None if band is None else hold_weights(band.weight, starts)
         self.sign_cols = None if band is None else list(band.sign_cols)
         self.basis_branches = None if band is None or basis is None else band.basis_branches
+        self.dry_cols = [] if self.basis_branches is None else list(band.dry_cols)
         # (n,) bool: joints that do not vote on pushes (MultimodalSEM.fit ``muted``); None: none
         self.muted = None if muted is None or not np.any(muted) else np.asarray(muted, bool)
 
@@ -179,9 +182,28 @@ class ModeFitter:
         return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None, t=t)
 
     def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
-        """Robust basis coefficients (n, p) fitted on ``members``."""
+        """Robust basis coefficients (n, p) fitted on ``members``.
+
+        With the friction band, a joint's resting samples are left out of its equations (a stuck
+        joint's torque is anywhere in its band, not the basis at a near-zero smooth sign: counted,
+        holds at one edge of the band bend a payload's gravity column into the friction) and the
+        dry-friction coefficients are kept non-negative (friction dissipates): a column whose
+        coefficient comes out negative is dropped and the rest refitted."""
         fit = fit_shared_coefficients if self.settings.shared_basis else fit_basis_coefficients
-        return fit(self.basis[members], self.Y[members])
+        B, Y = self.basis[members], self.Y[members]
+        if not self.dry_cols:
+            return fit(B, Y)
+        mask = (self.rest[members] <= 0.5).astype(np.float64)
+        B = B.copy()
+        for _ in range(len(self.dry_cols) + 1):
+            coef = fit(B, Y, mask=mask)
+            negative = coef[:, self.dry_cols] < 0          # (n, dry)
+            if not negative.any():
+                break
+            for j, c in zip(*np.nonzero(negative)):
+                B[:, j, self.dry_cols[c]] = 0.0
+                coef[j, self.dry_cols[c]] = 0.0
+        return coef
 
     def predictive(self, members: np.ndarray, hyper: Hyper | None, optimise: bool) -> tuple[np.ndarray, np.ndarray, ExactGP, np.ndarray, np.ndarray | None]:
         """Mean and variance (T, n) of every sample under the model of ``members`` (out of

@@ -186,24 +186,26 @@ def robust_regression(A: np.ndarray, Y: np.ndarray, *, shared: bool = True, mask
 
 
 def fit_basis_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 4,
-                           huber: float = 1.345) -> np.ndarray:
+                           huber: float = 1.345, mask: np.ndarray | None = None) -> np.ndarray:
     """Per-output linear coefficients (n, p) with Y[:, j] ~ basis[:, j, :] @ coef[j].
 
     basis (N, n, p), Y (N, n). Huber-weighted least squares (``n_irls`` solves, scale from the
     MAD), because the samples a mode is fitted on may still hold undetected pushes. Columns are
     scaled to unit RMS and the solve is minimum-norm, so rank-deficient regressors (parameters a
-    joint cannot see) get zero coefficients instead of blowing up.
+    joint cannot see) get zero coefficients instead of blowing up. ``mask`` (N, n) 0/1: the
+    equations used (None: all).
     """
-    return robust_regression(basis, Y, shared=False, huber_steps=n_irls - 1, huber_k=huber).coef
+    return robust_regression(basis, Y, shared=False, mask=mask, huber_steps=n_irls - 1, huber_k=huber).coef
 
 
 def fit_shared_coefficients(basis: np.ndarray, Y: np.ndarray, *, n_irls: int = 5,
-                            huber: float = 1.345) -> np.ndarray:
+                            huber: float = 1.345, mask: np.ndarray | None = None) -> np.ndarray:
     """One coefficient vector for all outputs, returned as (n, p) with equal rows:
     Y[:, j] ~ basis[:, j, :] @ c for every j (e.g. a payload's 10 inertial parameters, which
     load every joint). Huber-weighted least squares over the stacked (N * n) rows, each output's
-    rows scaled by its robust residual scale, re-estimated every IRLS step. basis (N, n, p)."""
-    coef = robust_regression(basis, Y, shared=True, whiten=True, huber_steps=n_irls - 1, huber_k=huber).coef
+    rows scaled by its robust residual scale, re-estimated every IRLS step. basis (N, n, p);
+    ``mask`` (N, n) 0/1: the equations used (None: all)."""
+    coef = robust_regression(basis, Y, shared=True, whiten=True, mask=mask, huber_steps=n_irls - 1, huber_k=huber).coef
     return np.tile(coef, (Y.shape[1], 1))
 
 
