@@ -259,3 +259,15 @@ def test_without_a_urdf_nothing_is_written_and_the_report_says_so(tmp_path):
     doc = json.loads((tmp_path / "findings.json").read_text())
     assert doc["corrected_model"]["written"] is False
     assert "no URDF" in (tmp_path / "report.md").read_text()
+
+
+def test_combined_velocity_scale_is_the_root_sum_of_squares():
+    # closed form: a motor at w = dq_k + c dq_m with independent noises v_k, v_m has noise hypot(v_k, c v_m)
+    import math
+
+    from mmgp.physics.context import combined_velocity_scale
+
+    assert math.isclose(combined_velocity_scale([1.0, -0.7], [0.03, 0.05]), math.hypot(0.03, 0.035), rel_tol=1e-12)
+    J = np.array([[1.0, 0.5, 0.0], [0.0, 2.0, -1.0]])
+    np.testing.assert_allclose(combined_velocity_scale(J, [0.1, 0.2, 0.3]),
+                               [math.hypot(0.1, 0.1), math.hypot(0.4, 0.3)], rtol=1e-12)

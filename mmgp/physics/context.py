@@ -84,6 +84,14 @@ def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.0
     return np.maximum(k * difference_noise_sd(dq), floor)
 
 
+def combined_velocity_scale(weights: np.ndarray, v_s: np.ndarray) -> np.ndarray:
+    """Smooth-sign scale (rad/s) of a combined velocity w = sum_i weights_i dq_i (a coupled motor,
+    a tendon): ``sqrt(sum_i (weights_i v_s_i)^2)`` over the last axis, the joints' velocity noises
+    taken as independent. ``weights`` (..., n), ``v_s`` (n,) the joints' scales."""
+    w = np.asarray(weights, dtype=np.float64) * np.asarray(v_s, dtype=np.float64)
+    return np.sqrt((w ** 2).sum(axis=-1))
+
+
 @dataclass
 class Context:
     """Everything the effect columns are functions of, for T samples of an n-joint robot.

@@ -21,7 +21,7 @@ from typing import ClassVar, Sequence
 
 import numpy as np
 
-from .context import Context
+from .context import Context, combined_velocity_scale
 from .identification import body_deltas, body_parameters
 from .inertial import point_mass_parameters
 from .payload import com_from_moments, linearised_columns
@@ -353,7 +353,7 @@ class CoupledTransmission(Effect):
     def columns(self, ctx):
         k, m, c = self.index, self.coupled, self.ratio
         w = ctx.dq[:, k] + c * ctx.dq[:, m]
-        cols = [_on_joint(ctx, k, x) for x in (np.tanh(w / np.hypot(ctx.v_s[k], c * ctx.v_s[m])), w,
+        cols = [_on_joint(ctx, k, x) for x in (np.tanh(w / combined_velocity_scale([1.0, c], ctx.v_s[[k, m]])), w,
                                                ctx.ddq[:, k] + c * ctx.ddq[:, m])]
         for col in cols:
             col[:, m] = c * col[:, k]

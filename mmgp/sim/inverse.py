@@ -7,7 +7,7 @@ comes from the constraint solver for the given ``qacc``, anywhere within the fri
 ``frictionloss * sign(dq)``. :func:`inverse_dynamics` therefore switches friction loss off
 (``mjDSBL_FRICTIONLOSS``; the models mmgp writes have no other constraints) and adds the law
 the diagnosis fits: ``frictionloss * tanh(dq / v_s)`` per joint and ``J^T frictionloss * tanh(J dq
-/ v_w)`` per tendon, ``v_w = sqrt(sum_i (J_i v_s_i)^2)`` (``mmgp.physics.effects``). ``v_s`` (rad/s,
+/ v_w)`` per tendon, ``v_w = sqrt(sum_i (J_i v_s_i)^2)`` (:func:`~mmgp.physics.context.combined_velocity_scale`, as the coupled transmission of ``mmgp.physics.effects``). ``v_s`` (rad/s,
 per joint) is the velocity scale the diagnosis fitted with, which ``corrected.xml`` carries as the
 custom numeric :data:`FRICTION_VELOCITY`; a model without it gets ``sign``. The two differ where
 a joint stands still: there static friction takes any value in its band, and the smooth law
@@ -20,6 +20,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from ..physics.context import combined_velocity_scale
 from ..physics.mjcf import FRICTION_VELOCITY
 
 
@@ -42,7 +43,7 @@ def inverse_dynamics(model, q, dq, ddq, v_s=None) -> np.ndarray:
             data.qpos[:], data.qvel[:], data.qacc[:] = q[t], dq[t], ddq[t]
             mujoco.mj_inverse(model, data)
             J = tendon_jacobian(model, data)
-            v_w = np.sqrt(((J * v_s) ** 2).sum(axis=1))  # the tendon's velocity noise from its joints'
+            v_w = combined_velocity_scale(J, v_s)
             out[t] = (data.qfrc_inverse + model.dof_frictionloss * smooth_sign(dq[t], v_s)
                       + J.T @ (model.tendon_frictionloss * smooth_sign(J @ dq[t], v_w)))
     finally:
