@@ -364,3 +364,16 @@ def test_configs_and_demo_data_are_package_data_in_one_copy():
     assert res.exit_code == 0 and res.stdout == config_file("panda_modes.yaml").read_text()
     res = runner.invoke(app, ["config", "show", "nope"])
     assert res.exit_code == 2 and "default, panda_modes" in res.stderr
+
+
+def test_training_report_shows_each_fit_of_the_friction_check(trained, tmp_path):
+    from mmgp.evaluation.reports import write_training_report
+
+    rep = json.loads((trained / "report.json").read_text())
+    rep["dissipation"] = {"fits": [{"worst": 0.371, "p_value": 5.3e-6, "log_marginal": -102.5, "physical": False},
+                                   {"worst": 0.0, "p_value": 1.0, "log_marginal": 68.625, "physical": True}],
+                          "chosen": 1, "physical": True, "runner_up_gap": 171.125}
+    page = read_page(write_training_report(tmp_path, rep))
+    rows = page.table("dissipation")
+    assert [(number(r[0]), number(r[1]), r[2]["text"], number(r[3]), r[4]["text"], r[5]["text"]) for r in rows] == \
+        [(1, 0.371, "5.3e-06", -102.5, "no", "no"), (2, 0, "1", 68.625, "yes", "yes")]

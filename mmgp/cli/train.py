@@ -83,7 +83,8 @@ def _dissipation(rep: dict) -> str:
         return ""
     first, kept = fits[0], fits[d["chosen"]]
     state = "dissipates" if d["physical"] else f"still injects energy on {100 * kept['worst']:.0f}% of sliding samples"
-    return (f" Friction: the first fit's injected energy on {100 * first['worst']:.0f}% of the sliding samples; "
+    depth = f" (p {first['p_value']:.2g} for a dissipative model)" if "p_value" in first else ""
+    return (f" Friction: the first fit's injected energy on {100 * first['worst']:.0f}% of the sliding samples{depth}; "
             f"refitted from labels swapped there ({len(fits)} fits), kept fit {d['chosen'] + 1}, whose friction "
             f"{state} (log marginal {kept['log_marginal']:.1f}, the runner-up {d['runner_up_gap']:.1f} lower).")
 
