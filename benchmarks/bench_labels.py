@@ -23,6 +23,7 @@ Sets of logs (``--sets``):
   2026-11-27 from a system random source, committed before any tuning) is scored once at the end;
   ``issue29b``: a second draw of its levers (ISSUE29B_*, 2026-11-28), with the same arms.
   ``issue29c``: a third draw of its levers (ISSUE29C_*, 2026-11-28), with the same arms.
+  ``issue29d``: a fourth draw (ISSUE29D_*, 2026-11-28, fourth session), with the same arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -122,6 +123,13 @@ ISSUE29B_SOURCE_FREE = (14045556, 11956926, 16746419, 16901030)
 ISSUE29C_SOURCE = (10643076, 17098479, 17671787, 14576934, 17362476, 13201065, 17507373, 11854182, 16881176,
                    17706129, 17768547, 17375754)
 ISSUE29C_SOURCE_FREE = (12575917, 10391766, 13030341, 16570667)
+# A fourth held-out draw (2026-11-28, fourth session, a system random source), committed before
+# anything was scored on it: the third draw's levers were scored twice (the friction branch, then
+# the rule switches), so they are a tuning set. ``issue29d``: these levers with the first draw's
+# arms (never scored).
+ISSUE29D_SOURCE = (13035178, 15862300, 18456160, 11145394, 16227646, 16252997, 10309244, 10294808, 13818546,
+                   12293969, 11457173, 12683936)
+ISSUE29D_SOURCE_FREE = (12748861, 15816278, 13761358, 17861578)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -501,6 +509,11 @@ def main(argv=None) -> int:
                   + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
     if "issue29c" in sets:
         cases += (family_cases(ISSUE29C_SOURCE, "source", a.cache) + family_cases(ISSUE29C_SOURCE_FREE, "source-free", a.cache)
+                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
+                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
+                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
+    if "issue29d" in sets:
+        cases += (family_cases(ISSUE29D_SOURCE, "source", a.cache) + family_cases(ISSUE29D_SOURCE_FREE, "source-free", a.cache)
                   + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
                   + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
                   + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
