@@ -133,7 +133,6 @@ def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReve
     injected = np.zeros((len(sem.gps_), dq.shape[1]))
     work, n_eff = np.zeros_like(injected), np.zeros_like(injected)
     p_depth = np.ones_like(injected)
-    judged = 0
     for k in range(len(sem.gps_)):
         rows = evenly_spaced(np.flatnonzero((labels == k) & clean & sliding.any(1)), max_points)
         if not len(rows):
@@ -143,13 +142,13 @@ def energy_check(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReve
             on = sliding[rows, j]
             if not on.any():
                 continue
-            judged += 1
             injected[k, j] = float(np.mean(z[on, j] < -Z_INJECT))
             n_eff[k, j] = effective_sample_size(z[on, j])
             p_depth[k, j] = depth_p_value(z[on, j], n_eff[k, j])
             power = odd[on, j] * dq[rows[on], j]
             work[k, j] = float(np.clip(-power, 0, None).sum() / max(np.abs(power).sum(), 1e-300))
-    p = float(min(1.0, p_depth.min() * max(judged, 1)))
+    judged = max(int((n_eff > 0).sum()), 1)          # every judged (mode, joint) has n_eff >= 1
+    p = float(min(1.0, p_depth.min() * judged))
     return {"injected": injected.round(4).tolist(), "n_eff": n_eff.round(1).tolist(), "p_depth": p_depth.tolist(),
             "work_share": work.round(4).tolist(), "worst": float(injected.max()) if injected.size else 0.0,
             "p_value": p, "physical": p >= ALPHA}
@@ -206,12 +205,6 @@ def _sliding(X: np.ndarray, rev: VelocityReversal) -> tuple[np.ndarray, np.ndarr
     smooth-sign scale), (T, n) bool."""
     dq = X[:, list(rev.dq_cols)]
     return dq, np.abs(dq) > smooth_sign_scale(dq)
-
-
-def _chance_share() -> float:
-    from scipy.stats import norm
-
-    return float(norm.cdf(-Z_INJECT))
 
 
 def injecting_samples(sem, X: np.ndarray, basis: np.ndarray | None, rev: VelocityReversal) -> np.ndarray:

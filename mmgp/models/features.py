@@ -13,7 +13,7 @@ from ..data.differentiation import SavitzkyGolay, complete_derivatives, downsamp
 from ..data.logs import RobotLog, read_log
 from ..errors import InputError
 from ..progress import report
-from ..physics.context import rest_weight
+from ..physics.context import rest_weight, resting
 
 
 def load_logs(sources: Sequence[str | Path | RobotLog], *, robot=None, diff_window_s: float | None = None,
@@ -182,7 +182,7 @@ def dry_friction_sign(dq: np.ndarray, friction_scale: np.ndarray) -> np.ndarray:
     it half would leave the other half to whatever else the mean can bend (a payload's gravity
     column). Where it may be stuck the band at rest (:class:`~mmgp.models.mstep.RestBand`) reads
     the torque instead."""
-    sliding = rest_weight(dq, friction_scale) <= 0.5
+    sliding = ~resting(rest_weight(dq, friction_scale))
     return np.where(sliding, np.sign(dq), np.tanh(dq / friction_scale))
 
 

@@ -19,6 +19,7 @@ from ..gp.hyper import Hyper
 from ..gp.linalg import gaussian_logpdf
 from ..gp.sparse import make_gp
 from ..gp.windowed import windowed_predictive
+from ..physics.context import resting
 from .estep import stretches
 from .hmm import _transition_counts
 from .robust import fit_basis_coefficients, fit_shared_coefficients
@@ -193,7 +194,7 @@ class ModeFitter:
         B, Y = self.basis[members], self.Y[members]
         if not self.dry_cols:
             return fit(B, Y)
-        mask = (self.rest[members] <= 0.5).astype(np.float64)
+        mask = (~resting(self.rest[members])).astype(np.float64)
         B = B.copy()
         for _ in range(len(self.dry_cols) + 1):
             coef = fit(B, Y, mask=mask)
@@ -428,9 +429,9 @@ def hold_weights(rest: np.ndarray, starts: Sequence[int] = (0,)) -> np.ndarray:
     where N(0, Sigma_d) is denser than the band) was flagged whole, on logs without a push."""
     out = np.ones(rest.shape)
     for j in range(rest.shape[1]):
-        resting = rest[:, j] > 0.5
-        first, length = stretches(resting, starts)
-        for a, L in zip(first[resting[first]], length[resting[first]]):
+        still = resting(rest[:, j])
+        first, length = stretches(still, starts)
+        for a, L in zip(first[still[first]], length[still[first]]):
             out[a:a + L, j] = 1.0 / L
     return out
 
@@ -438,7 +439,7 @@ def hold_weights(rest: np.ndarray, starts: Sequence[int] = (0,)) -> np.ndarray:
 def stuck_samples(rest: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:
     """(T,) samples where some joint rests (weight > 0.5) with a friction band wider than its
     predictive spread (half-width^2 > variance): its torque there may be anything in the band."""
-    return ((rest > 0.5) & (half ** 2 > var)).any(1)
+    return (resting(rest) & (half ** 2 > var)).any(1)
 
 
 def band_logpdf(e: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:

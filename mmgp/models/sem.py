@@ -60,6 +60,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..data.statistics import mad_sd
+from ..physics.context import resting
 from ..progress import report
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
@@ -432,7 +433,7 @@ class MultimodalSEM:
         bands = self.last_sweep_["bands"]
         # the median band half-width over each mode's resting samples (weight > 0.5), N*m
         self.friction_band_ = np.zeros((K, n)) if bands is None else np.array(
-            [[np.median(bands[k][fitter.rest[:, j] > 0.5, j]) if (fitter.rest[:, j] > 0.5).any() else 0.0
+            [[np.median(bands[k][resting(fitter.rest[:, j]), j]) if resting(fitter.rest[:, j]).any() else 0.0
               for j in range(n)] for k in order])
         self.stay_prob_ = float(params.stay)
         self.p_enter_ = float(params.p_enter) if self.disturbance else 0.0

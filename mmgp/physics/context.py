@@ -59,6 +59,13 @@ def rest_weight(dq: np.ndarray, v_s: np.ndarray) -> np.ndarray:
     return np.exp(-0.5 * (dq / np.maximum(np.asarray(v_s, dtype=np.float64), 1e-12)) ** 2)
 
 
+def resting(weight: np.ndarray) -> np.ndarray:
+    """Where a joint counts as at rest (may be stuck in its friction band): rest weight
+    (:func:`rest_weight`) above 1/2, i.e. |dq| below ~1.18 v_s. The complement is where it slides
+    and dry friction acts with the velocity's sign. Same shape as ``weight``, bool."""
+    return np.asarray(weight) > 0.5
+
+
 def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.05,
                       floor_frac: float = 0.01) -> np.ndarray:
     """Velocity scale ``v_s`` (n,) of the smooth sign ``tanh(dq / v_s)``, in rad/s: the one rule of
