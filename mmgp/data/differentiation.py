@@ -116,10 +116,115 @@ def loo_window(x: np.ndarray, order: int, w_min: int, w_max: int, n_candidates: 
     return best
 
 
-def complete_derivatives(log: RobotLog, differentiator: SavitzkyGolay | None = None) -> RobotLog:
-    """Fill in ``dq``/``ddq`` when the log lacks them. ``ddq`` comes from ``q`` directly
-    (one smoothing pass), not from a differentiated ``dq``, unless only ``dq`` was logged."""
+#: a logged velocity is judged for delay where, at its best lag, it follows the position's
+#: derivative this closely (correlation): below, it is mostly noise or not a derivative at all
+#: (``mmgp.physics.plausibility.velocity_warnings`` tells those)
+DELAY_MIN_CORRELATION = 0.9
+#: the longest delay looked for (s); contiguous blocks the delay is estimated on, each alone
+DELAY_MAX_S = 0.5
+DELAY_BLOCKS = 10
+#: family-wise level of "delayed by more than one sample" over a log's joints
+DELAY_ALPHA = 0.05
+
+
+def _peak_lag(a: np.ndarray, b: np.ndarray, L: int) -> tuple[float, float]:
+    """(lag, correlation) of the largest Pearson correlation of ``b[t + k]`` with ``a[t]`` over
+    their overlap, for k within +-L samples; the lag refined between samples by a parabola
+    through the peak."""
+    a, b = a - a.mean(), b - b.mean()
+    N, m = len(a), 2 * len(a)
+    cc = np.fft.irfft(np.conj(np.fft.rfft(a, m)) * np.fft.rfft(b, m), m)   # sum_t a[t] b[t + k]
+    lags = np.arange(-L, L + 1)
+    sxy = np.r_[cc[-L:], cc[:L + 1]]
+    A1, A2, B1, B2 = (np.r_[0.0, np.cumsum(x)] for x in (a, a * a, b, b * b))
+    k, cnt = np.abs(lags), N - np.abs(lags)
+    # the overlap: a[0:N-k] with b[k:N] for k >= 0, a[k:N] with b[0:N-k] for k < 0
+    lo_a, lo_b = np.where(lags >= 0, 0, k), np.where(lags >= 0, k, 0)
+    sx, sxx = A1[lo_a + cnt] - A1[lo_a], A2[lo_a + cnt] - A2[lo_a]
+    sy, syy = B1[lo_b + cnt] - B1[lo_b], B2[lo_b + cnt] - B2[lo_b]
+    cov, vx, vy = sxy / cnt - sx * sy / cnt ** 2, sxx / cnt - (sx / cnt) ** 2, syy / cnt - (sy / cnt) ** 2
+    ok = (vx > 0) & (vy > 0)
+    if not ok.any():
+        return 0.0, 0.0
+    c = np.where(ok, cov / np.sqrt(np.where(ok, vx * vy, 1.0)), -np.inf)
+    i = int(np.argmax(c))
+    if 0 < i < 2 * L and np.isfinite(c[i - 1]) and np.isfinite(c[i + 1]):
+        den = c[i - 1] - 2 * c[i] + c[i + 1]
+        return float(lags[i] + (0.5 * (c[i - 1] - c[i + 1]) / den if den < 0 else 0.0)), float(c[i])
+    return float(lags[i]), float(c[i])
+
+
+def velocity_delay(t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How many samples each column of a logged velocity ``dq`` (T, n) lags the derivative of the
+    logged position ``q`` (T, n) (its central difference over about 20 ms): (delay (n,), its
+    standard error (n,)), the mean and standard error of the lag of their largest
+    cross-correlation (within :data:`DELAY_MAX_S`) over :data:`DELAY_BLOCKS` contiguous blocks.
+    Blocks where the velocity does not follow the position's derivative closely
+    (:data:`DELAY_MIN_CORRELATION`) do not count; a column with fewer than 3 such blocks gets
+    delay 0 and an infinite standard error (not judged).
+
+    A velocity that is the position's derivative at the same instant peaks at lag 0 (a backward
+    difference half a sample later); one from a causal filter of the drive (a velocity estimate
+    smoothed for its controller) peaks later by its phase delay."""
+    dt = float(np.median(np.diff(t)))
+    h = max(1, int(round(0.01 / max(dt, 1e-12))))
+    n = q.shape[1]
+    delay, se = np.zeros(n), np.full(n, np.inf)
+    fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
+    v = dq[h:len(dq) - h]
+    edges = np.linspace(0, len(fd), DELAY_BLOCKS + 1).astype(int)
+    L = min(int(round(DELAY_MAX_S / max(dt, 1e-12))), int(np.diff(edges).min()) // 4)
+    if L < 2:
+        return delay, se
+    for j in range(n):
+        peaks = [_peak_lag(fd[a:b, j], v[a:b, j], L) for a, b in zip(edges[:-1], edges[1:])]
+        lags = np.array([lag for lag, c in peaks if c >= DELAY_MIN_CORRELATION])
+        if len(lags) >= 3:
+            delay[j], se[j] = lags.mean(), lags.std(ddof=1) / np.sqrt(len(lags))
+    return delay, se
+
+
+def delayed_joints(t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    """(n,) delay in samples of each joint whose logged velocity lags its position by more than
+    one sample at the one-sided level :data:`DELAY_ALPHA` over the joints (Student's t on the
+    blocks' lags), else 0. One sample, because a backward difference already lags half of one."""
+    from scipy.stats import t as student
+
+    delay, se = velocity_delay(t, q, dq)
+    k = student.ppf(1.0 - DELAY_ALPHA / max(q.shape[1], 1), DELAY_BLOCKS - 1)
+    return np.where(np.isfinite(se) & (delay - k * se > 1.0), delay, 0.0)
+
+
+def undelay_velocities(log: RobotLog, differentiator: SavitzkyGolay | None = None) -> RobotLog:
+    """``log`` with each logged velocity that lags its position by more than one sample
+    (:func:`delayed_joints`) replaced by the position's derivative, and its acceleration by the
+    position's second derivative; the delays (s) of the joints replaced in
+    ``metadata["velocity_delay_s"]`` (absent when none is). A delayed velocity is not the joint's
+    velocity at the sample's instant: friction would oppose the motion of 0.1 s before (its sign
+    late at every reversal) and a joint already stopped would read as sliding."""
+    if log.dq is None or log.dq_estimated or log.n_samples < 20:
+        return log
+    delay = delayed_joints(log.t, log.q, log.dq)
+    late = delay > 0
+    if not late.any():
+        return log
     diff = differentiator or SavitzkyGolay()
+    v, a = (diff.derivatives(log.t, log.q, (1, 2)) if hasattr(diff, "derivatives")
+            else (diff(log.t, log.q, 1), diff(log.t, log.q, 2)))
+    dq, ddq = log.dq.copy(), (diff(log.t, log.dq, 1) if log.ddq is None else log.ddq.copy())
+    dq[:, late], ddq[:, late] = v[:, late], a[:, late]
+    dt = float(np.median(np.diff(log.t)))
+    names = log.joint_names or [f"joint {k}" for k in range(log.n_joints)]
+    meta = dict(log.metadata, velocity_delay_s={names[k]: float(delay[k] * dt) for k in np.flatnonzero(late)})
+    return log.replace(dq=dq, ddq=ddq, metadata=meta, dq_estimated=True, ddq_estimated=True)
+
+
+def complete_derivatives(log: RobotLog, differentiator: SavitzkyGolay | None = None) -> RobotLog:
+    """Fill in ``dq``/``ddq`` when the log lacks them, and replace logged velocities that lag
+    their position (:func:`undelay_velocities`). ``ddq`` comes from ``q`` directly (one smoothing
+    pass), not from a differentiated ``dq``, unless only ``dq`` was logged."""
+    diff = differentiator or SavitzkyGolay()
+    log = undelay_velocities(log, diff)
     dq, ddq = log.dq, log.ddq
     dq_est = ddq_est = False
     if dq is None and ddq is None and hasattr(diff, "derivatives"):

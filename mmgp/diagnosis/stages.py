@@ -79,11 +79,12 @@ def prepare_log(log: RobotLog, differentiator, max_samples: int) -> tuple[RobotL
     thinning; and how far (s) the estimated derivatives smear a sudden change (0 when logged)."""
     from ..data.differentiation import complete_derivatives
 
-    if log.dq is None or log.ddq is None:
-        edge = _edge_samples(differentiator, log)
-        log = complete_derivatives(log, differentiator)
-    else:
-        edge = _edge_samples(differentiator, log) if (log.dq_estimated or log.ddq_estimated) else 0
+    before = log
+    log = complete_derivatives(log, differentiator)
+    edge = 0
+    if log.dq_estimated or log.ddq_estimated:
+        # a lagging logged velocity was replaced by the position's derivative: q was differentiated
+        edge = _edge_samples(differentiator, before.replace(dq=None) if "velocity_delay_s" in log.metadata else before)
     dt = float(np.median(np.diff(log.t)))
     if edge:
         # the parallel filter would spread the extrapolated ends over a cutoff period, so they are

@@ -11,8 +11,10 @@ diagnosis withholds its findings when a check of the first kind fails,
 Checks that make the log's numbers suspect: positions inside the model's joint limits (another
 robot, joints in another order, or units), positions that span more than two turns (degrees:
 the log must hold radians; no model needed), logged velocities that are the time derivative of
-the logged positions (columns swapped, mixed units, a log of noise). A check that only informs:
-a torque channel that reads one exact value on most samples (``mmgp.data.channels``).
+the logged positions (columns swapped, mixed units, a log of noise). Checks that only inform:
+a torque channel that reads one exact value on most samples (``mmgp.data.channels``), and logged
+velocities that lagged their positions and were replaced by the positions' derivatives
+(``mmgp.data.differentiation.undelay_velocities``).
 
 Checks of the held-out fit (:func:`fit_warnings`: each command passes its own held-out
 normalised MSE per joint, where 1 is the torque's own mean; they come after the log's checks):
@@ -148,7 +150,22 @@ def log_checks(logs, names: list, robot=None) -> tuple[list[str], list[str]]:
         if lg.dq is not None and not getattr(lg, "dq_estimated", False):
             where = f"{Path(str(lg.path)).name}: " if len(logs) > 1 else ""
             suspect += [where + w for w in velocity_warnings(lg.t, lg.q, lg.dq, names)]
-    return suspect, dead_band_warnings(np.concatenate([lg.tau for lg in logs]), names)
+    return suspect, dead_band_warnings(np.concatenate([lg.tau for lg in logs]), names) + delay_notes(logs)
+
+
+def delay_notes(logs: list) -> list[str]:
+    """One note per log whose logged velocities lagged their positions and were replaced
+    (``mmgp.data.differentiation.undelay_velocities``: ``metadata["velocity_delay_s"]``)."""
+    out = []
+    for lg in logs:
+        late = lg.metadata.get("velocity_delay_s") or {}
+        if late:
+            where = f"{Path(str(lg.path)).name}: " if len(logs) > 1 else ""
+            ms = [1e3 * s for s in late.values()]
+            out.append(f"{where}the logged velocity of {len(late)} joint(s) ({', '.join(late)}) lags the derivative "
+                       f"of the logged position by {min(ms):.0f}-{max(ms):.0f} ms (a filtered velocity estimate): "
+                       "their velocities and accelerations were taken from the positions instead")
+    return out
 
 
 def log_warnings(logs, names: list, robot=None) -> list[str]:
