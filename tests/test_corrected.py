@@ -271,3 +271,28 @@ def test_combined_velocity_scale_is_the_root_sum_of_squares():
     J = np.array([[1.0, 0.5, 0.0], [0.0, 2.0, -1.0]])
     np.testing.assert_allclose(combined_velocity_scale(J, [0.1, 0.2, 0.3]),
                                [math.hypot(0.1, 0.1), math.hypot(0.4, 0.3)], rtol=1e-12)
+
+
+def test_whole_identified_bodies_are_written_or_named_when_not_physical(tmp_path):
+    """``bodies`` (the consistent fit's bodies whole): a physical one lands in corrected.urdf as
+    Pinocchio builds it from mass, com and inertia; one whose inertia about its com is not
+    positive (a held pose's fit) is named and the nominal body kept, without an exception."""
+    urdf = tmp_path / "arm2.urdf"
+    urdf.write_text(ARM2_URDF)
+    bad = {"mass": 1.5, "com": [0.1, 0.0, 0.0], "inertia": [0.001, -0.004, 0.001, 0.0, 0.0, 0.0]}
+    good = {"mass": 2.2, "com": [0.05, 0.01, -0.02], "inertia": [0.01, 0.02, 0.015, 0.001, -0.002, 0.0005]}
+    finding = {"effect": "inertial_parameters", "link": None,
+               "params": {"link": None, "base": {}, "delta": {}, "bodies": {"upper": good, "fore": bad}}}
+    out = tmp_path / "out"
+    out.mkdir()
+    summary = write_corrected([finding], urdf, JOINTS, out)
+    nominal = pin.buildModelFromUrdf(str(urdf))
+    model = pin.buildModelFromUrdf(str(out / "corrected.urdf"))
+    v = good["inertia"]
+    I = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
+    want = pin.Inertia(good["mass"], np.array(good["com"]), I).toDynamicParameters()
+    np.testing.assert_allclose(model.inertias[1].toDynamicParameters(), want, atol=1e-12)
+    np.testing.assert_allclose(model.inertias[2].toDynamicParameters(), nominal.inertias[2].toDynamicParameters(),
+                               atol=1e-12)
+    assert any("fore" in w and "not physical" in w for w in summary["not_expressed"])
+    mujoco.MjModel.from_xml_path(str(out / "corrected.xml"))

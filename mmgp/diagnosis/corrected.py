@@ -157,17 +157,22 @@ def _payload(f: dict, c: Corrections) -> None:
                      f"a link {link}_payload in corrected.urdf (payload{mode})")
 
 
-def _new_inertia(Y0, d: dict, whole: bool):
-    """Pinocchio inertia (link frame) of a body: ``d`` the whole body (``whole``) or a delta
-    (mass, com, inertia about the com; parts absent are the nominal ``Y0``'s)."""
-    import pinocchio as pin
+def _new_parameters(Y0, d: dict, whole: bool) -> np.ndarray:
+    """(10,) Pinocchio dynamic parameters (link frame) of a body: ``d`` the whole body (``whole``)
+    or a delta (mass, com, inertia about the com; parts absent are the nominal ``Y0``'s). Built
+    without Pinocchio's checks, so an identified body that is not physical can be named, not
+    raised on."""
+    from ..physics.inertial import point_mass_parameters, vech
 
     v = np.asarray(d.get("inertia", np.zeros(6)), dtype=np.float64)
     I6 = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
     if whole:
-        return pin.Inertia(float(d["mass"]), np.asarray(d["com"], dtype=np.float64), I6)
-    com = np.asarray(Y0.lever) + np.asarray(d.get("com", np.zeros(3)), dtype=np.float64)
-    return pin.Inertia(float(Y0.mass + d.get("mass", 0.0)), com, np.asarray(Y0.inertia) + I6)
+        m, com, Ic = float(d["mass"]), np.asarray(d["com"], dtype=np.float64), I6
+    else:
+        m = float(Y0.mass + d.get("mass", 0.0))
+        com = np.asarray(Y0.lever) + np.asarray(d.get("com", np.zeros(3)), dtype=np.float64)
+        Ic = np.asarray(Y0.inertia) + I6
+    return point_mass_parameters(m, com) + np.r_[np.zeros(4), vech(Ic)]
 
 
 def _inertial(f: dict, model, c: Corrections) -> None:
@@ -187,14 +192,14 @@ def _inertial(f: dict, model, c: Corrections) -> None:
             c.not_expressed.append(f"inertial_parameters of {body!r}: not a link of the corrected model")
             continue
         Y0 = model.inertias[links.index(body) + 1]
-        new = _new_inertia(Y0, d, whole)
-        problems = consistency_problems(new.toDynamicParameters(), name=body)
+        new = _new_parameters(Y0, d, whole)
+        problems = consistency_problems(new, name=body)
         if problems:
             c.not_expressed.append(f"inertial_parameters of {body}: the {'identified' if whole else 'nominal'} body"
                                    f"{'' if whole else ' plus its delta'} is not physical ({'; '.join(problems)}); "
                                    "the nominal inertial is kept")
             continue
-        c.body_changes[body] = new.toDynamicParameters() - Y0.toDynamicParameters()
+        c.body_changes[body] = new - Y0.toDynamicParameters()
         c.written.append(f"{body}: inertial parameters " + ("of the physically consistent fit: " if whole else
                          "changed by ") + ", ".join(
             f"{k} {_g(v) if np.isscalar(v) else '[' + ', '.join(_g(x) for x in v) + ']'}" for k, v in d.items())
