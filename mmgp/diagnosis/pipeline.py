@@ -295,7 +295,8 @@ class Diagnoser(BaseEstimator):
             findings.append(mode_switch_finding(ms, phys.ctx, alpha=self.alpha, n_folds=self.mode_folds))
         if pushes.disturbed.any():
             findings.append(_disturbance(pushes, prob.t))
-        info = {"reidentification": reid, "coupling_search": coupling_ev, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
+        info = {"velocity_delay_s": log.metadata.get("velocity_delay_s", {}),
+                "reidentification": reid, "coupling_search": coupling_ev, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
                                                       for e, p in dropped]}
         return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
 
@@ -446,6 +447,9 @@ def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
     from ..physics.plausibility import log_checks
     from .plausibility import check
 
+    # the velocities the diagnosis replaced (``undelay_velocities``, in prepare_log) are told too
+    delay = res.info.get("velocity_delay_s")
+    log = log.replace(metadata={**log.metadata, "velocity_delay_s": delay}) if delay else log
     kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot),
                                      log_checks(log, res.joint_names, robot))
     return dataclasses.replace(res, findings=kept, withheld=withheld, warnings=warnings)
