@@ -197,35 +197,25 @@ def delayed_joints(t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
 
 def undelay_velocities(log: RobotLog, differentiator: SavitzkyGolay | None = None) -> RobotLog:
     """``log`` with each logged velocity that lags its position by more than one sample
-    (:func:`delayed_joints`) moved back by its delay (interpolated between samples), and its
-    acceleration taken from the moved velocity (a logged one moved alike); the last samples, which
-    the move leaves without a reading, get the position's derivatives. The delays (s) of the joints
-    moved are in ``metadata["velocity_delay_s"]`` (absent when none is). A delayed velocity is not
-    the joint's velocity at the sample's instant: friction would oppose the motion of 0.1 s before
-    (its sign late at every reversal) and a joint already stopped would read as sliding. Moving the
-    reading keeps the sensor's own velocity where the position's derivative would smooth over every
-    start from rest."""
+    (:func:`delayed_joints`) replaced by the position's derivative, and its acceleration by the
+    position's second derivative; the delays (s) of the joints replaced in
+    ``metadata["velocity_delay_s"]`` (absent when none is). A delayed velocity is not the joint's
+    velocity at the sample's instant: friction would oppose the motion of 0.1 s before (its sign
+    late at every reversal) and a joint already stopped would read as sliding."""
     if log.dq is None or log.dq_estimated or log.n_samples < 20:
         return log
     delay = delayed_joints(log.t, log.q, log.dq)
-    late = np.flatnonzero(delay > 0)
-    if not len(late):
+    late = delay > 0
+    if not late.any():
         return log
     diff = differentiator or SavitzkyGolay()
     v, a = (diff.derivatives(log.t, log.q, (1, 2)) if hasattr(diff, "derivatives")
             else (diff(log.t, log.q, 1), diff(log.t, log.q, 2)))
+    dq, ddq = log.dq.copy(), (diff(log.t, log.dq, 1) if log.ddq is None else log.ddq.copy())
+    dq[:, late], ddq[:, late] = v[:, late], a[:, late]
     dt = float(np.median(np.diff(log.t)))
-    dq, ddq = log.dq.copy(), None if log.ddq is None else log.ddq.copy()
-    for j in late:
-        when = log.t + delay[j] * dt
-        tail = when > log.t[-1]
-        dq[:, j] = np.where(tail, v[:, j], np.interp(when, log.t, log.dq[:, j]))
-        if ddq is not None:
-            ddq[:, j] = np.where(tail, a[:, j], np.interp(when, log.t, log.ddq[:, j]))
-    if ddq is None:
-        ddq = diff(log.t, dq, 1)
     names = log.joint_names or [f"joint {k}" for k in range(log.n_joints)]
-    meta = dict(log.metadata, velocity_delay_s={names[k]: float(delay[k] * dt) for k in late})
+    meta = dict(log.metadata, velocity_delay_s={names[k]: float(delay[k] * dt) for k in np.flatnonzero(late)})
     return log.replace(dq=dq, ddq=ddq, metadata=meta, dq_estimated=True, ddq_estimated=True)
 
 

@@ -13,7 +13,7 @@ robot, joints in another order, or units), positions that span more than two tur
 the log must hold radians; no model needed), logged velocities that are the time derivative of
 the logged positions (columns swapped, mixed units, a log of noise). Checks that only inform:
 a torque channel that reads one exact value on most samples (``mmgp.data.channels``), and logged
-velocities that lagged their positions and were moved back by their delay
+velocities that lagged their positions and were replaced by the positions' derivatives
 (``mmgp.data.differentiation.undelay_velocities``).
 
 Checks of the held-out fit (:func:`fit_warnings`: each command passes its own held-out
@@ -164,7 +164,7 @@ def delay_notes(logs: list) -> list[str]:
             ms = [1e3 * s for s in late.values()]
             out.append(f"{where}the logged velocity of {len(late)} joint(s) ({', '.join(late)}) lags the derivative "
                        f"of the logged position by {min(ms):.0f}-{max(ms):.0f} ms (a filtered velocity estimate): "
-                       "their velocities were moved back by that delay and the accelerations taken from them")
+                       "their velocities and accelerations were taken from the positions instead")
     return out
 
 
