@@ -32,6 +32,7 @@ import sys
 import numpy as np
 
 import bench_figaroh as bf
+from bench_figaroh_ceiling import columns, peer_set
 from mmgp.evaluation.metrics import FIGAROH_ROWS, normalised_mse
 
 
@@ -49,29 +50,11 @@ def regressor(rm, q, dq, ddq, stride: int) -> np.ndarray:
                      for i in range(0, len(q), stride)])
 
 
-def friction_columns(dq, ddq, v_s) -> np.ndarray:
-    """(T, n, 4n + 3): per joint tanh(dq/v_s), dq, 1, ddq; then the motor-6 coupling (w = dq5 + dq6)."""
-    from mmgp.sim.inverse import smooth_sign
-
-    T, n = dq.shape
-    cols = []
-    for j in range(n):
-        for x in (smooth_sign(dq[:, j], v_s[j]), dq[:, j], np.ones(T), ddq[:, j]):
-            e = np.zeros((T, n))
-            e[:, j] = x
-            cols.append(e)
-    w, dw = dq[:, 5] + dq[:, 4], ddq[:, 5] + ddq[:, 4]
-    for x in (smooth_sign(w, np.hypot(v_s[5], v_s[4])), w, dw):
-        e = np.zeros((T, n))
-        e[:, 5], e[:, 4] = x, x
-        cols.append(e)
-    return np.stack(cols, axis=2)
-
-
 def library(rm, part, v_s, stride: int) -> tuple[np.ndarray, np.ndarray]:
     """(columns (T', n, P), torque minus nominal (T', n)) on every ``stride``-th sample."""
     q, dq, ddq, tau = (part[k][::stride] for k in ("q", "dq", "ddq", "tau"))
-    C = np.concatenate([regressor(rm, q, dq, ddq, 1), friction_columns(dq, ddq, v_s)], axis=2)
+    # per joint Coulomb tanh(dq / v_s), viscous, offset, armature, and the motor-6 coupling (ratio 1)
+    C = np.concatenate([regressor(rm, q, dq, ddq, 1), columns(peer_set(dq.shape[1], "tx40"), dq, ddq, v_s)], axis=2)
     return C, tau
 
 

@@ -27,7 +27,8 @@ def test_a_pure_delay_is_found_to_the_sample_and_a_true_velocity_at_zero():
         late = np.vstack([np.repeat(dq[:1], k, axis=0), dq[:len(T) - k]])
         got, se = velocity_delay(T, q, late + rng.normal(0.0, 1e-3, dq.shape))
         assert np.all(np.abs(got - k) < 0.5) and np.all(se < 0.5), (k, got, se)
-        assert delayed_joints(T, q, late).tolist() == ([0.0, 0.0] if k < 2 else got.round().tolist()) or k >= 2
+        judged = delayed_joints(T, q, late)
+        assert judged.tolist() == [0.0, 0.0] if k < 2 else np.all(np.abs(judged - k) < 0.5), (k, judged)
 
 
 def test_a_first_order_filter_delays_a_sinusoid_by_its_phase_over_w():

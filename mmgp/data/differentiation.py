@@ -154,45 +154,64 @@ def _peak_lag(a: np.ndarray, b: np.ndarray, L: int) -> tuple[float, float]:
     return float(lags[i]), float(c[i])
 
 
+def position_difference(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, int]:
+    """(central difference of ``q`` (T, n) over about 20 ms, (T - 2h, n) aligned with samples
+    h..T-h-1; h): the position's derivative a logged velocity is checked against."""
+    dt = float(np.median(np.diff(t)))
+    h = max(1, int(round(0.01 / max(dt, 1e-12))))
+    return (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None], h
+
+
+def _block_lags(t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> list[np.ndarray]:
+    """Per column of ``dq``, the lags (samples) of its largest cross-correlation with the
+    position's derivative on each of :data:`DELAY_BLOCKS` contiguous blocks where it follows it
+    closely (:data:`DELAY_MIN_CORRELATION`); empty arrays where the blocks are too short."""
+    fd, h = position_difference(t, q)
+    v = dq[h:len(dq) - h]
+    dt = float(np.median(np.diff(t)))
+    edges = np.linspace(0, len(fd), DELAY_BLOCKS + 1).astype(int)
+    L = min(int(round(DELAY_MAX_S / max(dt, 1e-12))), int(np.diff(edges).min()) // 4)
+    if L < 2:
+        return [np.zeros(0)] * q.shape[1]
+    out = []
+    for j in range(q.shape[1]):
+        peaks = [_peak_lag(fd[a:b, j], v[a:b, j], L) for a, b in zip(edges[:-1], edges[1:])]
+        out.append(np.array([lag for lag, c in peaks if c >= DELAY_MIN_CORRELATION]))
+    return out
+
+
 def velocity_delay(t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How many samples each column of a logged velocity ``dq`` (T, n) lags the derivative of the
-    logged position ``q`` (T, n) (its central difference over about 20 ms): (delay (n,), its
-    standard error (n,)), the mean and standard error of the lag of their largest
-    cross-correlation (within :data:`DELAY_MAX_S`) over :data:`DELAY_BLOCKS` contiguous blocks.
-    Blocks where the velocity does not follow the position's derivative closely
-    (:data:`DELAY_MIN_CORRELATION`) do not count; a column with fewer than 3 such blocks gets
-    delay 0 and an infinite standard error (not judged).
+    logged position ``q`` (T, n) (:func:`position_difference`): (delay (n,), its standard error
+    (n,)), the mean and standard error of the lag of their largest cross-correlation (within
+    :data:`DELAY_MAX_S`) over :data:`DELAY_BLOCKS` contiguous blocks. Blocks where the velocity
+    does not follow the position's derivative closely (:data:`DELAY_MIN_CORRELATION`) do not
+    count; a column with fewer than 3 such blocks gets delay 0 and an infinite standard error
+    (not judged).
 
     A velocity that is the position's derivative at the same instant peaks at lag 0 (a backward
     difference half a sample later); one from a causal filter of the drive (a velocity estimate
     smoothed for its controller) peaks later by its phase delay."""
-    dt = float(np.median(np.diff(t)))
-    h = max(1, int(round(0.01 / max(dt, 1e-12))))
-    n = q.shape[1]
-    delay, se = np.zeros(n), np.full(n, np.inf)
-    fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
-    v = dq[h:len(dq) - h]
-    edges = np.linspace(0, len(fd), DELAY_BLOCKS + 1).astype(int)
-    L = min(int(round(DELAY_MAX_S / max(dt, 1e-12))), int(np.diff(edges).min()) // 4)
-    if L < 2:
-        return delay, se
-    for j in range(n):
-        peaks = [_peak_lag(fd[a:b, j], v[a:b, j], L) for a, b in zip(edges[:-1], edges[1:])]
-        lags = np.array([lag for lag, c in peaks if c >= DELAY_MIN_CORRELATION])
-        if len(lags) >= 3:
-            delay[j], se[j] = lags.mean(), lags.std(ddof=1) / np.sqrt(len(lags))
+    lags = _block_lags(t, q, dq)
+    judged = [len(x) >= 3 for x in lags]
+    delay = np.array([x.mean() if ok else 0.0 for x, ok in zip(lags, judged)])
+    se = np.array([x.std(ddof=1) / np.sqrt(len(x)) if ok else np.inf for x, ok in zip(lags, judged)])
     return delay, se
 
 
 def delayed_joints(t: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
     """(n,) delay in samples of each joint whose logged velocity lags its position by more than
     one sample at the one-sided level :data:`DELAY_ALPHA` over the joints (Student's t on the
-    blocks' lags), else 0. One sample, because a backward difference already lags half of one."""
+    blocks' lags, with as many degrees of freedom as blocks counted less one), else 0. One
+    sample, because a backward difference already lags half of one."""
     from scipy.stats import t as student
 
-    delay, se = velocity_delay(t, q, dq)
-    k = student.ppf(1.0 - DELAY_ALPHA / max(q.shape[1], 1), DELAY_BLOCKS - 1)
-    return np.where(np.isfinite(se) & (delay - k * se > 1.0), delay, 0.0)
+    level = 1.0 - DELAY_ALPHA / max(q.shape[1], 1)
+    out = np.zeros(q.shape[1])
+    for j, x in enumerate(_block_lags(t, q, dq)):
+        if len(x) >= 3 and x.mean() - student.ppf(level, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)) > 1.0:
+            out[j] = x.mean()
+    return out
 
 
 def undelay_velocities(log: RobotLog, differentiator: SavitzkyGolay | None = None) -> RobotLog:

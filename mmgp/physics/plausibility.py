@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.channels import dead_band_warnings
+from ..data.differentiation import position_difference
 from ..data.filtering import lowpass_for
 from ..data.statistics import difference_noise_sd
 from .context import pin_model
@@ -112,10 +113,9 @@ def velocity_warnings(t: np.ndarray, q: np.ndarray, dq: np.ndarray, names: list)
     there, only a velocity larger than the position allows is told (it could not show the
     motion); above both, a velocity that shows none of it is (scale ratio near 0)."""
     dt = float(np.median(np.diff(t)))
-    h = max(1, int(round(0.01 / max(dt, 1e-12))))
+    fd, h = position_difference(t, q)
     if len(t) <= 2 * h + 10:
         return []
-    fd = (q[2 * h:] - q[:-2 * h]) / (t[2 * h:] - t[:-2 * h])[:, None]
     v = dq[h:-h]
     nq = difference_noise_sd(q, robust=False) ** 2
     cov, sa, sb, nb, na = _band_statistics(t[h:-h], v, fd, difference_noise_sd(dq) ** 2, 2 * nq / (2 * h * dt) ** 2)
