@@ -159,3 +159,48 @@ def test_the_selection_judges_stretches_before_merging():
     assert sel["scores"][2] > sel["scores"][1]
     assert min(sel["longest_run_s"][2]) <= 1.5
     assert sel["chosen"] == 1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_disturbance_given_a_fixed_mode_path_matches_enumeration(seed):
+    # Every state sequence of the full chain (modes x disturbance, 4 states, 7 samples, two logs)
+    # whose modes follow the path, weighed by its prior and likelihood.
+    import itertools
+
+    from mmgp.models.estep import chain_matrix, disturbed_given_modes
+
+    rng = np.random.default_rng(seed)
+    K, T, starts = 2, 7, (0, 4)
+    loglik = rng.normal(scale=2.0, size=(T, 2 * K))
+    modes = rng.integers(0, K, T)
+    stay, p_enter, p_leave = 0.9, 0.2, 0.35
+    A = chain_matrix(K, True, stay, p_enter, p_leave)
+    init = np.full(2 * K, 1.0 / (2 * K))
+    num, den = np.zeros(T), 0.0
+    for d in itertools.product((0, 1), repeat=T):
+        s = modes + K * np.array(d)
+        w = np.exp(loglik[np.arange(T), s].sum())
+        for i in range(T):
+            w *= init[s[i]] if i in starts else A[s[i - 1], s[i]]
+        num += w * np.array(d)
+        den += w
+    got = disturbed_given_modes(loglik, modes, K, p_enter, p_leave, starts)
+    np.testing.assert_allclose(got, num / den, rtol=1e-10, atol=1e-12)
+
+
+def test_a_push_that_looks_like_the_other_mode_for_a_moment_is_flagged():
+    # Two lasting modes (a 1 N*m payload offset for 8 s of 24); inside the first mode a 0.5 s
+    # push of the same 1 N*m and two larger ones. The push that equals the payload is, sample by
+    # sample, the other mode's; a mode lasts 4 s, so it can only be the first mode's, pushed.
+    t, x, f = _signal(480, 20.0)
+    mode = ((t >= 10) & (t < 18)).astype(int)
+    push = np.zeros(len(t))
+    for a, b, size in [(3.0, 3.5, 1.0), (6.0, 7.0, 3.0), (14.0, 15.0, -3.0)]:
+        push[(t >= a) & (t < b)] = size
+    y = f + 1.0 * mode + push + 0.05 * np.random.default_rng(1).normal(size=len(t))
+    model = MultimodalSEM(n_modes=2, disturbance=True, max_sweeps=12, fit_iter=20, min_mode_s=4.0).fit(
+        x[:, None], y[:, None], t=t)
+    assert adjusted_rand_score(mode, model.labels_) >= 0.95
+    same = (t >= 3.0) & (t < 3.5)
+    assert model.disturbed_[same].mean() >= 0.9
+    assert model.disturbed_[push == 0].mean() <= 0.02

@@ -45,6 +45,21 @@ def e_step(loglik: np.ndarray, A: np.ndarray, init_p: np.ndarray, states: np.nda
     return EStepResult(new_states, probs, float(log_marg), log_joint)
 
 
+def disturbed_given_modes(loglik: np.ndarray, modes: np.ndarray, n_modes: int, p_enter: float,
+                          p_leave: float, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """(T,) posterior probability that each sample is disturbed when the mode path is fixed to
+    ``modes`` (T,) ints < K. ``loglik`` (T, 2K) per-sample log-likelihoods over states
+    ``k + K*d``; ``p_enter``, ``p_leave`` the disturbance chain's switching probabilities.
+
+    The chain's transition matrix factors as (disturbance) x (mode), so along a fixed mode path
+    the mode factor is a constant and drops out: what is left is the disturbance chain over each
+    sample's own mode's undisturbed / disturbed likelihoods, uniform at each log's start."""
+    idx = np.arange(len(modes))
+    pair = np.stack([loglik[idx, modes], loglik[idx, n_modes + modes]], axis=1)
+    A = transition_matrix(1, 1.0, p_enter, p_leave)
+    return forward_backward(pair, A, np.full(2, 0.5), starts)[1][:, 1]
+
+
 def stretches(labels: np.ndarray, starts: Sequence[int] = (0,)) -> tuple[np.ndarray, np.ndarray]:
     """First index and length of every unbroken stretch of one value in ``labels`` (T,), T >= 1;
     a stretch also ends where a new log starts (``starts``)."""

@@ -64,7 +64,8 @@ from ..physics.context import resting
 from ..progress import report
 from ..threads import limit_threads
 from .convergence import ConvergenceMonitor, SweepRecord
-from .estep import chain_matrix, e_step, longest_runs_s, merge_short_runs, runs_shorter_than
+from .estep import (chain_matrix, disturbed_given_modes, e_step, longest_runs_s, merge_short_runs,
+                    runs_shorter_than)
 from .hmm import forward_backward
 from .mstep import (ModeFitter, PushPrior, RestBand, SweepParams, evenly_spaced, mode_emissions,
                     update_parameters)
@@ -407,27 +408,33 @@ class MultimodalSEM:
         self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
         if self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0:
             p_dist = np.zeros(T)
+        # A mode lasts: shorter stretches take a neighbouring stretch's mode (one-hot below).
+        unmerged = p_mode.argmax(1)
+        modes = merge_short_runs(unmerged, min_mode_len, starts) if min_mode_len > 1 else unmerged
+        moved = modes != unmerged
+        if self.disturbance and moved.any() and p_dist.any():
+            # With the other mode ruled out, a moved sample is its new mode's, undisturbed or
+            # pushed, as the chain weighs them (a push can look like the other payload for
+            # a fraction of a second; counted clean it would be missed).
+            p_dist[moved] = disturbed_given_modes(self.last_sweep_["loglik"], modes, K, params.p_enter,
+                                                  params.p_leave, starts)[moved]
         if self.disturbance and fitter.hold is not None:
-            p_dist = self._holds_on_their_own(fitter, p_mode.argmax(1), p_dist, params)
+            p_dist = self._holds_on_their_own(fitter, modes, p_dist, params)
         p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
         if self.disturbance:
             # After the shortest-push rule (its blips are model error, part of the scan's
             # reference), and the rule again on what the scan adds.
-            p_dist = self._scan_sustained(fitter, p_mode.argmax(1), p_dist, starts, scan_len)
+            p_dist = self._scan_sustained(fitter, modes, p_dist, starts, scan_len)
             p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
         # Mode 0 is the nominal mode: the one holding the most undisturbed probability mass.
         order = np.argsort(-(p_mode * (1 - p_dist)[:, None]).sum(0), kind="stable")
+        rank = np.argsort(order)
+        # How long each mode holds before any merging (merging can join a flicker into long stretches).
+        self.longest_stretch_s_ = longest_runs_s(rank[unmerged], fitter.t_axis, K, starts)
+        p_mode[moved] = np.eye(K)[modes[moved]]
         self.p_mode_ = p_mode[:, order]
         self.p_disturbed_ = p_dist
-        self.labels_ = self.p_mode_.argmax(1)
-        # How long each mode holds before any merging (merging can join a flicker into long stretches).
-        self.longest_stretch_s_ = longest_runs_s(self.labels_, fitter.t_axis, K, starts)
-        if min_mode_len > 1:
-            # A mode lasts: shorter stretches take a neighbouring stretch's mode (p_mode one-hot).
-            lasting = merge_short_runs(self.labels_, min_mode_len, starts)
-            moved = lasting != self.labels_
-            self.p_mode_[moved] = np.eye(K)[lasting[moved]]
-            self.labels_ = lasting
+        self.labels_ = rank[modes]
         self.disturbed_ = self.p_disturbed_ > 0.5
         self.sigma_d_ = params.sigma_d if self.disturbance else np.zeros(n)
         bands = self.last_sweep_["bands"]
