@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from mmgp.data.outputs import write_table
-from mmgp.fleet.engine import available_cores
+from mmgp.threads import usable_cores
 from mmgp.sim.concealed import ACTUATOR_URDF, make_case
 
 BASE_TAU_C = 0.3
@@ -94,7 +94,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=2000, help="samples per log (200 Hz)")
     ap.add_argument("--workers", type=int, default=None, help="Ray workers (default: the cores available)")
     args = ap.parse_args()
-    workers = args.workers or available_cores()
+    workers = args.workers or usable_cores()
     with tempfile.TemporaryDirectory(prefix="mmgp-bench-fleet-") as tmp:
         tmp = Path(tmp)
         logs = tmp / "logs"
@@ -103,7 +103,7 @@ def main() -> None:
         generate(logs, args.logs, args.start, args.slope, args.samples)
         print(f"generated {args.logs} logs x {args.samples} samples in {time.perf_counter() - t0:.0f} s; "
               f"friction {BASE_TAU_C} N*m, +{args.slope} N*m per log from log {args.start}")
-        print(f"cores available: {available_cores()}; load average before: {os.getloadavg()}")
+        print(f"cores available: {usable_cores()}; load average before: {os.getloadavg()}")
         serial = run_fleet(logs, tmp / "serial", ["--serial"])
         print(f"load average: {os.getloadavg()}")
         on_ray = run_fleet(logs, tmp / "ray", ["--workers", str(workers)])

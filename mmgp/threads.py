@@ -29,6 +29,13 @@ from typing import Iterator
 #: kernel matrices with fewer rows than this are factorised on one thread (see the module doc)
 PARALLEL_FROM_ROWS = 4000
 
+#: thread-count variables of the numerical libraries (OpenMP, OpenBLAS, MKL, BLIS, Apple
+#: Accelerate, numexpr) set to one thread: a worker process started with them has one thread
+#: in every pool from the start, before numpy or torch load (the environment twin of
+#: ``limit_threads(1)``)
+ONE_THREAD_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                         "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
+
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one)."""
     try:

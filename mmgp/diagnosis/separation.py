@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data.statistics import mad_sd
-from ..models.estep import stretches
+from ..models.estep import runs_shorter_than, stretches
 
 #: the ``separate`` setting of the Diagnoser: method name -> what it does (as reported)
 SEPARATION_METHODS = {
@@ -52,9 +52,7 @@ def rest_runs(rest: np.ndarray, min_len: int) -> np.ndarray:
     shorter runs are dropped."""
     kept = rest.copy()
     for j in range(rest.shape[1]):
-        for a, b in runs(rest[:, j]):
-            if b - a < min_len:
-                kept[a:b, j] = False
+        kept[runs_shorter_than(rest[:, j], min_len), j] = False
     return kept
 
 

@@ -2,7 +2,7 @@
 
 Ray runs locally by default (``ray.init(num_cpus=workers)``: one task per core), or on the
 cluster at ``address``; a session this process already opened is reused and left open. Every
-task gets one CPU and runs its numerics on one thread: :data:`mmgp.fleet.work.THREAD_ENV` is in
+task gets one CPU and runs its numerics on one thread: :data:`mmgp.threads.ONE_THREAD_ENV` is in
 every worker's environment from its start, and :func:`mmgp.threads.limit_threads` (1) holds
 inside the task. A local Ray started here inherits those variables from this process (set only
 while Ray starts), so the workers Ray starts in advance serve the tasks; a cluster, or a session
@@ -16,15 +16,16 @@ import os
 import time
 from typing import Callable, Iterator, Sequence
 
-from .work import THREAD_ENV, blank_outcome, process_log
+from ..threads import ONE_THREAD_ENV, usable_cores
+from .work import blank_outcome, process_log
 
 RAY_MISSING = ("mmgp fleet runs its tasks on Ray, which is not installed: pip install 'mmgp[fleet]' "
                "(or pip install ray), or run the logs one after another with --serial")
 
 #: every task takes one CPU of Ray's budget
 TASK_OPTIONS = {"num_cpus": 1}
-#: the task options where the workers do not inherit THREAD_ENV (a cluster, a session opened elsewhere)
-JOINED_TASK_OPTIONS = dict(TASK_OPTIONS, runtime_env={"env_vars": dict(THREAD_ENV)})
+#: the task options where the workers do not inherit ONE_THREAD_ENV (a cluster, a session opened elsewhere)
+JOINED_TASK_OPTIONS = dict(TASK_OPTIONS, runtime_env={"env_vars": dict(ONE_THREAD_ENV)})
 
 Progress = Callable[[int, int, dict], None]
 
@@ -39,13 +40,6 @@ def import_ray():
     except ImportError:
         raise RayMissingError(RAY_MISSING) from None
     return ray
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its affinity mask where the OS has one)."""
-    with contextlib.suppress(AttributeError):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
 
 
 def run_serial(jobs: Sequence[dict], progress: Progress | None = None) -> list[dict]:
@@ -83,8 +77,8 @@ def ray_session(address: str | None, workers: int | None) -> Iterator[tuple]:
         return
     kwargs = {"include_dashboard": False, "log_to_driver": False}
     if address is None:
-        with _environ(THREAD_ENV):
-            ray.init(num_cpus=workers or available_cores(), **kwargs)
+        with _environ(ONE_THREAD_ENV):
+            ray.init(num_cpus=workers or usable_cores(), **kwargs)
     else:
         ray.init(address=address, **kwargs)
     try:

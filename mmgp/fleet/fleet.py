@@ -15,7 +15,8 @@ from sklearn.exceptions import NotFittedError
 from ..data.outputs import atomic_write_bytes, jsonable, write_table
 from ..errors import InputError
 from .drift import flag_drift
-from .engine import available_cores, run_ray, run_serial
+from ..threads import usable_cores
+from .engine import run_ray, run_serial
 from .table import fleet_table
 from .work import log_time
 
@@ -128,7 +129,7 @@ class Fleet(BaseEstimator):
         """Run-level facts: engine, workers, wall time, and per log its time, status and seconds."""
         self._fitted()
         folders = _folder_names([o["log"] for o in self.outcomes_])
-        workers = 1 if self.engine == "serial" else (self.workers or (available_cores() if self.address is None
+        workers = 1 if self.engine == "serial" else (self.workers or (usable_cores() if self.address is None
                                                                        else None))
         logs = [{"log": o["log"], "folder": f"logs/{folders[o['log']]}", "robot": o["robot"],
                  "log_time": _iso(o["log_time"]), "log_time_source": o["log_time_source"],

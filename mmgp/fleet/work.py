@@ -22,11 +22,6 @@ from ..progress import report
 #: or Unix seconds); still read after ``start_time`` so that logs written for them keep their times
 LEGACY_TIME_KEY = "log_time"
 
-#: thread-count variables of the numerical libraries a task uses (OpenMP, OpenBLAS, MKL, BLIS,
-#: Apple Accelerate, numexpr); Ray's workers get them at start, before numpy or torch load
-THREAD_ENV = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-                                     "BLIS_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
-
 
 def _parse_legacy_time(raw: str, path: Path) -> float:
     text = raw.strip()
