@@ -61,8 +61,8 @@ class MultimodalGP(BaseEstimator):
         if any (GP only otherwise, and always for arrays).
     estep : "mpm", "ffbs" or "gibbs", default "mpm"
         Labels of each sweep: each sample's most probable state under the chain's posterior
-        (deterministic: the answer does not depend on ``seed``; replica seeds 0-9 gave one
-        answer), or drawn by joint forward-filtering backward-sampling, or by single-site
+        (deterministic: the answer does not depend on ``seed``), or drawn by joint
+        forward-filtering backward-sampling, or by single-site
         Gibbs (the source's method; both depend on ``seed``).
     stay_prob : float in (0, 1) or None, default None
         Fixed p(mode_t = mode_{t-1}); None learns it (Beta prior, mean 0.95).
@@ -88,8 +88,8 @@ class MultimodalGP(BaseEstimator):
         With a robot and "residual": each mode's mean is linear in rigid-body regressors,
         fitted robustly per mode, under its GP, so a mode extrapolates like physics. "payload"
         (what "auto" picks with a robot): the distal body's 10 inertial parameters shared by
-        all joints; "rbd": every body's parameters per joint (also absorbed smooth pushes:
-        Panda seed 2 F1 0.82 vs 0.95). Without a robot "auto" is "none".
+        all joints; "rbd": every body's parameters per joint (so many columns that they also
+        absorb smooth pushes). Without a robot "auto" is "none".
     push_s, gap_s : float > 0, default 1.0, 5.0
         Prior push duration and time between pushes in s (worth 3 observed pushes): a flicker of
         one sample costs the same at any sampling rate.
@@ -425,8 +425,7 @@ class MultimodalGP(BaseEstimator):
         With the friction input, the prediction is averaged over both sliding directions: at
         rest the friction torque can be anywhere in its band, so the band's centre is what a
         position-only feedforward should supply, and a moving log has data on both branches but
-        almost none at the sign's zero crossing (evaluating there extrapolated: 0.73 vs 0.17 N*m
-        static error on the replica lever)."""
+        almost none at the sign's zero crossing (evaluating there extrapolates)."""
         z = np.zeros_like(self._states(q, "q"))
         if self.friction_scale_ is None:
             return self._predict(q, z, z, 0, return_std=False)[0]

@@ -1,12 +1,11 @@
 """The one thread policy of every mmgp command: how many CPU threads the numerics may use.
 
-What the measurements on the shared 2-core development machine (load 6-8) taught:
+Why:
 
 * Small factorisations must run on one thread. With several OpenMP/BLAS threads a busy machine
-  makes every parallel region wait for a descheduled thread: a 5,000-sample 7-DOF EM sweep took
-  50-90 s on two threads and 3-7 s on one; one fold of ``mmgp compare`` on the real Panda
-  (2,000 training samples) 274 s vs ~30 s; a 300-row, 7-output hyperparameter evaluation
-  0.2-0.9 s vs 0.09 s. On an idle machine one thread loses little at these sizes.
+  makes every parallel region wait for a descheduled thread, which costs far more than the
+  threads gain at these sizes; on an idle machine one thread loses little there (EM sweeps,
+  ``mmgp compare`` folds, hyperparameter evaluations: benchmarks/README.md, "sixth session: tuning history").
 * Large factorisations (thousands of rows: the exact GP on a whole log, SGPR conditioning) gain
   from threads only where cores are idle.
 

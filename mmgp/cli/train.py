@@ -62,7 +62,8 @@ def _summary(model) -> str:
 
 
 def _flags_note(rep: dict) -> str:
-    """Why the flagged count differs from the last sweep's "disturbed" (issue 31: 487 then 0)."""
+    """Why the flagged count differs from the last sweep's "disturbed": the flags are the final
+    labels (averaged sweeps, short pushes dropped, the scan's added; none when abstaining)."""
     trace = rep.get("likelihood_trace") or []
     dist = rep["disturbance"]
     if not trace or trace[-1]["n_disturbed"] == dist["n_disturbed"]:

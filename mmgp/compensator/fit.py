@@ -4,7 +4,7 @@
 estimator that can give its nominal torque at rest works (the public ``MultimodalGP``, or a
 closed-form stand-in in tests and benchmarks).
 
-Choices (issue 12):
+Choices:
 
 * The mean is the rigid-body gravity of the model's ``robot`` (when it has one), re-identified with
   physical consistency from what the model learned, its static nominal torque at its support poses
@@ -13,19 +13,16 @@ Choices (issue 12):
   ``payload_com_radius`` of the joint's origin), then every body's mass and first moment
   (log-Cholesky, ridge towards the nominal URDF plus that payload). The EM's own per-mode payload
   mean is an unconstrained 10-parameter fit (it has come out with negative masses on real data) and
-  is not used directly. Measured: on the simulated Panda (0.5 kg payload) the payload alone is
-  exact (0.4996 kg) and the re-identification keeps it; on the real Panda the payload clips to 0
-  (free fit -0.59 kg) and the re-identification takes the deviation the GP must carry from
-  2.2 / 2.9 N*m RMS to 0.4 / 0.3 N*m on joints 2 / 4.
+  is not used directly. A payload the data hold is kept by the re-identification, which also
+  takes most of what the nominal bodies get wrong off the GP
+  (benchmarks/README.md, "sixth session: tuning history").
 * Support positions (several joints): half of them the model's own support poses, half random ones
   of those moved by N(0, (``tube`` * range)^2) per joint (5 % of the data's range). The model's
-  torque is not a gradient field (on the real Panda the antisymmetric part of its Jacobian was 43 %
-  of the deviation's); fitted only along a trajectory, where nothing shows the inconsistency, the
-  likelihood interpolated it and the potential tilted off the trajectory: 12 N*m of deviation
-  0.05 rad from the data where the model had at most 2.3. With the tube and the noise variances
-  started at 10 % of the targets' mean squares, it calls the non-conservative part noise (std 1.0
-  and 1.4 N*m on joints 1 and 3 there, about 0 on the others) and the largest deviation found in
-  the whole valid region is 1.3 N*m.
+  torque is not a gradient field (its Jacobian has an antisymmetric part); fitted only along a
+  trajectory, where nothing shows the inconsistency, the likelihood interpolates it and the
+  potential tilts off the trajectory. With the tube and the noise variances started at 10 % of
+  the targets' mean squares, it calls the non-conservative part noise, and the deviation stays
+  small over the whole valid region (benchmarks/README.md, "sixth session: tuning history").
 * The deviation ``nominal_torque - grad V_rb`` is learned by a curl-free GP with Wendland's compactly
   supported kernel (:class:`mmgp.compensator.kernels.WendlandProfile`, smoothness 3). Its support
   radii are fitted by the marginal likelihood, started at 3 standard deviations of the support
@@ -33,14 +30,10 @@ Choices (issue 12):
   joint: the valid region reaches at most one data range beyond the data. Then all radii are
   shrunk by one factor, if needed, until a support point has at most ``max_neighbours`` support
   points within its radius on average, which bounds the work of the C evaluation near the data
-  ("auto": 700 / n, 100 for 7 joints; the work per neighbour grows with n; ``info["radius_scale"]``;
-  real Panda, 1,000 support points, CPU time per call near the
-  data on the shared benchmark machine with the k-d tree of the time: 3.4 / 4.8 us for budgets
-  100 / 150, Pinocchio's computeGeneralizedGravity 0.6 us; the box-pruned scan since: 2.3 us at 100). Measured trade-off (short radii revert to the prior sooner,
-  the kernel's curvature lengthscale being radius / 4.7-5.6): on the real Panda, budget 100
-  instead of 150 left poses 0.05 rad from the data 0.10-0.26 instead of 0.04-0.12 N*m RMS off the
-  model on joints 2 and 4-7; radii capped at half the data range instead of one raised the error
-  between the passes of a sparse 2-link trajectory (no robot) from 3-7 % to 35-70 %.
+  ("auto": 700 / n, 100 for 7 joints; the work per neighbour grows with n; ``info["radius_scale"]``).
+  The trade-off: short radii revert to the prior sooner (the kernel's curvature lengthscale is
+  radius / 4.7-5.6), so a smaller budget or a lower cap costs accuracy off the data
+  (benchmarks/README.md, "sixth session: tuning history").
 """
 from __future__ import annotations
 
@@ -159,8 +152,9 @@ def model_prior(model: FeedforwardSource, robot, com_radius: float = 0.5, reiden
     for what gravity cannot tell apart. The prior keeps each body's mass and centre of mass; the
     file records the payload, the re-identified and nominal masses and the fit residuals.
     ``reidentify="auto"`` re-identifies only where the data ask for it (:func:`_reidentify_pays`):
-    on a simulated UR5 whose URDF is exact, re-identifying every body from the model's torque moved
-    the upper arm's first moments and cost 0.64 N*m at poses far from the data (payload only: 0.07).
+    where the URDF is right, re-identifying every body from the model's torque moves bodies the
+    data barely constrain and costs accuracy at poses far from the data
+    (benchmarks/README.md, "sixth session: tuning history").
     """
     from ..physics.consistent import fit_consistent_parameters
     from ..physics.payload import fit_point_mass

@@ -95,8 +95,7 @@ def loo_window(x: np.ndarray, order: int, w_min: int, w_max: int, n_candidates: 
     The smoother is linear with centre weight c0, so the LOO residual is (x - x_hat) / (1 - c0)
     exactly (interior samples; the same interior is scored for every candidate). Noise sets the
     window: a noisy logged velocity gets a long one, a fine encoder position a short one, which a
-    rate-based rule cannot know (a 7-DOF log at 100 Hz: 0.05 s windows gave accelerations noisy
-    enough to hide 1 N*m pushes).
+    rate-based rule cannot know.
     """
     T = len(x)
     w_min = max(order + 2 + (order % 2 == 0), w_min | 1)

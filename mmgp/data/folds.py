@@ -97,8 +97,7 @@ def _blocks(ts: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
 
 # Windows (s) longer than these fractions of the shortest log leave too little of it outside
 # the window: an exclusion window as long as the log leaves every sample's likelihood to the
-# prior alone, and every sample looks disturbed (0.5 s at 10 kHz flagged 2,834 of 5,000 samples
-# under the 1 s default; the same samples over 5 s at 1 kHz flag exactly the 300 pushed ones).
+# prior alone, and every sample looks disturbed.
 # The shortest push and mode shrink with the others, in proportion to their defaults (0.15 s and
 # 4 s beside the 1 s exclusion window): a 24-sample push in a 0.04 s log is a push of that log.
 WINDOW_FRACTIONS = {"exclusion_s": 0.2, "block_s": 0.4, "mode_smoothing_s": 0.8, "min_push_s": 0.03,

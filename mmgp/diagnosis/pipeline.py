@@ -22,13 +22,11 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    in time, leave-window-out likelihoods) then gates the scan (``separate="auto"``): a scanned
    span is kept when the learner also flags some of it, or when the scan's statistic peaks at
    >= ``em_gate_peak`` times its threshold. Where a payload mode switch is found, the pushes are
-   scanned again on the two-mode residual and gated by a two-mode learner. Chosen on
-   ``benchmarks/bench_diagnose.py`` (26 cases x 2 seeds, 3000 samples): the learner alone
-   (``separate="em"``) flags pushes on control logs (a false ``external_disturbance`` on
-   ``panda_control`` and ``actuator_control``), so it cannot lead; a union of both inherits
-   that; the scan alone keeps one false push finding (``panda_loadfric_j2``) that the gate
-   removes; a gate without the strong-span exemption dropped a true 1.2 s push (15x threshold)
-   that the learner's GP had absorbed.
+   scanned again on the two-mode residual and gated by a two-mode learner. Why: the learner
+   alone (``separate="em"``) flags pushes on logs without any, so it cannot lead, and a union
+   of both inherits that; the scan alone keeps false pushes the gate removes; the strong-span
+   exemption keeps a long push whose part the learner's GP absorbed (measured on
+   ``benchmarks/bench_diagnose.py``: benchmarks/README.md, "sixth session: tuning history").
 3. *Name*: forward selection on time-block cross-validation (``n_folds`` blocks): an effect is
    added only while the best candidate's paired held-out gain is significant (one-sided
    Wilcoxon signed-rank test over the blocks; an effect on one joint's torque is tested on that
@@ -215,7 +213,7 @@ class Diagnoser(BaseEstimator):
         _stage("reading the log")
         log = _read(log, robot)
         # the linear algebra here is many small products; multi-threaded BLAS only adds contention
-        # (on a busy 2-core machine a 21000 x 90 Gram took 1-3 s threaded and 0.03 s on one thread)
+        # (mmgp.threads)
         with limit_threads(1, blas_only=True):
             res = self._diagnose(log, robot)
         res = _checked(res, log, robot)

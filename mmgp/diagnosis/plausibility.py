@@ -59,9 +59,9 @@ def fit_warnings(fit: dict, names: list) -> tuple[list[str], set]:
 
 
 #: Largest plausible encoder offset, rad (11.5 degrees). A robot that runs with its joint zero that
-#: far off would be seen to (calibrated arms are within a fraction of a degree). The real Panda's
-#: joint 7 came out with 0.83 +/- 0.25 rad; a centre-of-mass error of the hand (link 7, which the
-#: payload rule keeps out of the re-identified body) can look like one (not verified).
+#: far off would be seen to (calibrated arms are within a fraction of a degree). A centre-of-mass
+#: error of the distal link (which the payload rule keeps out of the re-identified body) can look
+#: like one.
 MAX_ENCODER_OFFSET = 0.2
 
 

@@ -35,8 +35,8 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     (as any candidate of a selection step), and a gain of at least ``min_gain`` of the held-out
     error the library alone leaves: the body must account for a material part of what is left.
     Measured against the nominal error instead, a real arm's body is never material: the
-    library's springs, offsets and payload mimic most of an inertial mismatch (real Panda:
-    library alone 0.6% of the nominal error, with the body 0.14-0.3%). The payload links are
+    library's springs, offsets and payload mimic most of an inertial mismatch
+    (benchmarks/README.md, "sixth session: tuning history"). The payload links are
     not part of the body (``stages.rigid_regressor``), so a payload stays a payload.
 
     Each side is scored at its own linearisation (``lib_rest`` relinearised without the body):

@@ -48,9 +48,8 @@ def paired_gains(e, before: np.ndarray, after: np.ndarray, w: np.ndarray) -> np.
     (K, n) adding it, ``w`` (n,) joint weights. An effect acting on its own joint's torque alone
     (``e.own_joint``: friction, armature, a spring, a torque offset) is judged on that joint: the
     other joints move only through coefficients they share with it (the re-identified body), and
-    their fold-to-fold noise would drown a gain the joint shows in every block (real Panda,
-    Coulomb friction on joint 4: -67% held-out error on 20 of 20 blocks, p 1e-6 on the joint, 4e-3
-    on the weighted sum of all seven). Any other effect on the joint-weighted sum."""
+    their fold-to-fold noise would drown a gain the joint shows in every block
+    (benchmarks/README.md, "sixth session: tuning history"). Any other effect on the joint-weighted sum."""
     if e.own_joint:
         return before[:, e.index] - after[:, e.index]
     return (before - after) @ w
@@ -60,8 +59,7 @@ def gain_p(e, before: np.ndarray, after: np.ndarray, w: np.ndarray) -> float:
     """One-sided signed-rank p-value of ``paired_gains``; 1.0 when the joint-weighted total
     held-out error does not fall (an effect judged on its own joint must not cost the others
     more than it gains there). An effect on its own joint may also show on the weighted sum:
-    through the shared body it can help the other joints more than its own (real Panda, Coulomb
-    friction on joint 6: p 3e-3 on the joint, the others' errors 5% lower); both tests are made,
+    through the shared body it can help the other joints more than its own; both tests are made,
     the smaller p doubled (Bonferroni over the two)."""
     if float((before - after).sum(0) @ w) <= 0.0:
         return 1.0

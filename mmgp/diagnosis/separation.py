@@ -71,10 +71,9 @@ def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None
     band) is not at rest: its friction follows the sliding law through the turn, and after the
     filter so short a stretch weighs little. With a filter, only stays of at least
     ``min_rest_periods`` cutoff periods (a tenth; 0: every stay, the push scans' mask) count as
-    rest (``rest_runs``). Widening every reversal by the filter's memory left 38% of the real
-    Panda's equations (a 21 s Fourier excitation, cutoff 0.88 Hz, every stay within the band
-    shorter than 0.1 s), and with them went the reversals that tell Coulomb friction from offsets
-    and gravity.
+    rest (``rest_runs``). Widening every reversal by the filter's memory would drop most of a
+    fast excitation's equations, and with them the reversals that tell Coulomb friction from
+    offsets and gravity.
     """
     T, n = dq.shape
     rest = np.abs(dq) < factor * np.asarray(v_s)[None, :]

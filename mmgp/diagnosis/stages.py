@@ -36,8 +36,8 @@ class Problem:
     ``f_c`` its cutoff (Hz, None: none); ``M`` (T, n) valid equations; ``M_scan`` (T, n) where
     pushes are looked for: ``M`` less every passage through zero velocity and the filter's memory
     around it, since there the friction law's transition, which tanh(dq / v_s) only approximates,
-    leaves a misfit that is no external force (a lever whose friction turns over 0.02 rad/s, ours
-    over 0.008: 0.5-0.7 s "pushes" at its reversals); ``folds`` time blocks;
+    leaves a misfit that is no external force (a friction law that turns over more slowly than
+    the smooth sign leaves "pushes" at every reversal); ``folds`` time blocks;
     ``library`` the candidate effects; ``ctx`` the nominal Context; ``n_samples_in_log``;
     ``smear_s`` how far (s) estimated derivatives spread a sudden change (0 when logged)."""
 
@@ -191,16 +191,15 @@ def nominal_weights(prob: Problem, use: np.ndarray | None = None) -> np.ndarray:
     selection and fit): the inverse variance of its nominal residual over valid equations of
     samples ``use`` (default all), fixed before any effect is fitted, so every joint's error
     relative to the nominal model counts alike. Weights from a fitted model's own residual favour
-    the joints it fits best: a re-identified body's 30-40 base parameters then look significant on
-    a simulated payload log (p 1e-6; with these weights 0.4), and the real Panda's joint 1 got
-    0.001 of joint 7's weight, so the body shared by every joint was set by the others (joint 1
-    held-out 0.44 against its nominal 0.048)."""
+    the joints it fits best: a re-identified body's base parameters then look significant where
+    a payload is all there is, and a joint the nominal model fits worst gets almost no weight, so
+    the body shared by every joint is set by the others
+    (benchmarks/README.md, "sixth session: tuning history")."""
     use = np.ones(len(prob.t), bool) if use is None else use
     e, M = prob.r[use], prob.M[use]
     # about its mean: a constant level is no scatter. An arm holding a pose has a nominal residual
-    # that is nearly all level (a payload's static torque); its mean square gave the joints that
-    # carry the payload 1/40000 of the weight of those at noise (UR5 with 2.5 kg held: mass 2.83
-    # kg, with phantom torque offsets beside it; about the mean: 2.500 kg, nothing else)
+    # that is nearly all level (a payload's static torque); its mean square would give the joints
+    # that carry the payload almost no weight beside those at noise
     mean = (M * e).sum(0) / np.maximum(M.sum(0), 1)
     return joint_weights(e - mean, M)
 
@@ -371,8 +370,8 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
     """Pushes looked for again once the mode switch ``ms`` explains its part of the residual.
 
     The learner gating them then runs with at least two modes: with one it would call the rarer
-    mode's samples disturbed and confirm everything; with two it learns both (99.9% agreement
-    with the simulator's modes on panda_modes) and confirms only what neither explains.
+    mode's samples disturbed and confirm everything; with two it learns both and confirms only
+    what neither explains.
     """
     from .modes import mode_prediction, near_switches
 
@@ -418,10 +417,7 @@ def without_body(prob: Problem) -> Problem:
     """The problem whose library is what a re-identified body must beat (``reidentify``): the
     library less the rigid body, each payload candidate a whole attached body (its ten
     parameters, ``AttachedBody``): the contract names any rigid mass on the distal link a payload,
-    and a rigid mass has its own inertia, which a point mass lacks. (Measured on a simulated Panda
-    with a 1.2 kg payload of 5 cm radius it moves little: the body's held-out gain over the library
-    0.824 with a point mass, 0.818 with the whole body; what kept that body out was the joint
-    weighting of ``reidentify``.)"""
+    and a rigid mass has its own inertia, which a point mass lacks."""
     from ..physics.effects import AttachedBody
 
     library = [AttachedBody(e.index) if e.name == "payload" else e for e in prob.library if e.scope != "model"]

@@ -91,8 +91,7 @@ def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = No
       the same as train's and the diagnosis's); they change no figure.
     """
     # Each fold is small factorisations (hyperparameters on a few hundred samples, conditioning
-    # on max_train): one thread (mmgp.threads); on the shared 2-core machine two threads made a
-    # real-Panda fold take 274 s instead of ~30 s.
+    # on max_train): one thread (mmgp.threads says why).
     with limit_threads(1):
         return _compare(log, robot, n_folds=n_folds, gap=gap, max_train=max_train, seed=seed,
                         gp_options=gp_options, hyper_fit=hyper_fit, block_s=block_s, progress=progress)

@@ -135,8 +135,8 @@ class _PotentialGP(BaseEstimator):
                         max_iter=self.max_iter or self.default_iter, noise_floor_rel=self.noise_floor_rel,
                         noise_init=self.noise_init)
         l, s2, noise, nll = hyper(lengthscale_init=self.lengthscale_init, max_lengthscale=self.max_lengthscale)
-        # (fitting the signal and noise variances again for shrunk radii changed no figure: the
-        # real Panda export's held-out errors and deviation maxima agreed to 1e-3)
+        # (the signal and noise variances are not fitted again for shrunk radii: doing so changed
+        # no figure; benchmarks/README.md, "sixth session: tuning history")
         l = self._limit_support(Q, l)
         t1 = time.perf_counter()
         K = torch.from_numpy(kernel_np(Q, Q, l, s2))
@@ -293,7 +293,7 @@ def fit_potential_hyper(X, Y, kernel, *, gradient_targets: bool, max_iter: int =
         theta0[:n] = np.minimum(theta0[:n], cap)
         bounds = [(None, c) for c in cap] + [(None, None)] * (1 + d)
     # Matrices of a few thousand rows gain little from threads, and on a shared machine extra
-    # threads oversubscribe the cores (measured 10x slower with 2 threads under load).
+    # threads oversubscribe the cores (mmgp.threads).
     best = maximise(partial(chained_value_and_grad, MARGINAL, gram, y), theta0, n=y.numel(), max_iter=max_iter,
                     rows=y.numel(), history=20, bounds=bounds)
     theta = theta0 if best is None else best.theta

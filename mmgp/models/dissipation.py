@@ -1,5 +1,5 @@
 """Friction dissipates: the learnt undisturbed model must not inject energy, and when it does,
-the EM is run again from a start that obeys the physics (issue 29).
+the EM is run again from a start that obeys the physics.
 
 Reversing every joint velocity (q and ddq kept) leaves the rigid-body torque unchanged (its
 velocity terms are quadratic in dq), so the part of the undisturbed model that is odd in dq,

@@ -102,9 +102,8 @@ def rest_band_on(setting, rigid_basis: str | None) -> bool:
     """Whether training uses the friction band at rest (MultimodalGP ``rest_band``): ``setting``
     True / False, or "auto": on where the mean has a rigid-body basis (``rigid_basis``, from
     :func:`resolve_mean_basis` without friction), whose load makes the friction columns. Without
-    one the band is read off the GP alone: on the replica family (12 recordings, no URDF) it met
-    both lines on 7 against 9 without the band, and its target at rest depended on where the EM
-    stopped (benchmarks/README.md, "The friction band at rest becomes the default")."""
+    one the band is read off the GP alone, and its target at rest depends on where the EM stops
+    (benchmarks/README.md, "The friction band at rest becomes the default")."""
     if isinstance(setting, str) and setting == "auto":
         return rigid_basis is not None
     return bool(setting)

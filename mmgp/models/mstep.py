@@ -483,9 +483,8 @@ def update_parameters(Y: np.ndarray, states: np.ndarray, em: Emissions, params: 
             sel = (mode_of == k) & ~dist
             if sel.sum() >= 10:
                 z2 = ((Y - em.means[k]) ** 2 / (em.vars[k] / params.calib[k]))[sel]
-                # The mean, not a robust median/0.455: on the Panda both gave recall ~0.59, and
-                # the median let the replica's once-visited states through (worst
-                # unperturbed-correct 0.915 vs 0.954). Resting samples weigh by how much they
+                # The mean, not a robust median: the overconfident states are the few visited
+                # once, which a median passes over. Resting samples weigh by how much they
                 # move: their spread is the friction band's, not the model's.
                 w = np.ones_like(z2) if rest is None else 1.0 - rest[sel]
                 params.calib[k] = np.clip((w * z2).sum(0) / np.maximum(w.sum(0), 1e-9), 1.0, 1e4)

@@ -28,8 +28,8 @@ the label sequences with Beta priors; the push chain's priors are durations in s
 at any sampling rate.
 
 Start (no labels given): one GP on every sample, then GPs refitted on the ``start_trim``
-fractions of the samples it explains best (pushes inflate a GP fitted on everything: noise 0.64
-N*m instead of 0.02 on the replica, and the pushes then look like noise); samples whose robust
+fractions of the samples it explains best (pushes inflate the noise of a GP fitted on
+everything, and the pushes then look like noise); samples whose robust
 z-score under the last fit exceeds ``start_z`` start disturbed; for K > 1, modes from k-means on
 time-smoothed residuals.
 
@@ -103,15 +103,13 @@ class MultimodalSEM:
     mode_smoothing_s : running-median length of the residuals clustered into initial modes.
     min_mode_s : a mode lasts at least this long, seconds: in the final labels a shorter stretch
         of one mode takes a neighbouring stretch's mode (:func:`.estep.merge_short_runs`; needs
-        ``t``; K > 1). On the UR5 validation log with a switching 0.8 kg payload, stretches of
-        1-1.5 s inside payload segments (poses where the payload barely loads the joints) were
-        called the other mode. :func:`select_n_modes` also requires every mode to last this long.
+        ``t``; K > 1): at poses where a payload barely loads the joints, a second or so of one
+        mode looks like the other. :func:`select_n_modes` also requires every mode to last this long.
     abandon_short_modes : (K > 1, with ``t``) stop the sweeps early, unconverged, once one mode
         has held nowhere for ``min_mode_s`` seconds in one stretch (each sweep's most probable
         labels) for ``patience`` sweeps after ``min_sweeps`` (``abandoned_`` True): such a mode
-        is what :func:`select_n_modes` (which sets this) rejects. Real Panda, 20,544 samples:
-        K = 2 kept a 3.4-3.7 s second mode for 45 sweeps (13 of 19.5 minutes); with ``rest_band``,
-        a second mode of 6,400-6,700 samples in stretches of at most 0.74 s for 44 sweeps.
+        is what :func:`select_n_modes` (which sets this) rejects, and a long log can keep one
+        for dozens of sweeps (benchmarks/README.md, "sixth session: tuning history").
     calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
     shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
         payload) instead of one per joint.
@@ -134,9 +132,8 @@ class MultimodalSEM:
         :meth:`.mstep.ModeFitter.friction_band`) blurred by the predictive spread
         (:func:`.mstep.at_rest_logpdf`), and an unbroken hold votes once, for the band or for a
         push (:func:`.mstep.hold_weights`); the scan does not average where the band is wider
-        than that spread. On the issue-10 tuning levers stuck holds and velocity
-        reversals were the false alarms (docs/training.md, "A stuck joint holds any torque in
-        its friction band").
+        than that spread. Without it stuck holds and velocity reversals are taken for pushes
+        (docs/training.md, "A stuck joint holds any torque in its friction band").
     start_trim : fractions of the samples kept by the successive refits of the start.
     start_z : robust z-score over which a sample starts disturbed.
     abstain : flag nothing when the disturbance states do not pay their BIC price.
@@ -488,8 +485,7 @@ class MultimodalSEM:
 
         Why: held still by friction, the robot shows one torque for the whole hold, so the
         chain counts a hold once (:func:`.mstep.hold_weights`), and so weakly that the stay prior
-        carried a neighbouring push's state into it, a sample at a time (issue 29's levers:
-        every false alarm within 1.5 s of a push, most in the hold before its onset). A stuck
+        carried a neighbouring push's state into it, a sample at a time. A stuck
         joint's torque is evidence of a push only where it leaves the band, and that is
         decided sample by sample: a push that builds up inside a hold is flagged from where it
         leaves the band on."""

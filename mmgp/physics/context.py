@@ -78,9 +78,10 @@ def smooth_sign_scale(dq: np.ndarray, *, k: float = 3.0, speed_frac: float = 0.0
     slowest samples; the floor keeps a noise-free (simulated) log from a discontinuous sign.
 
     Two users, two settings of the same rule: the GP input of training uses the defaults (with the
-    noise term alone, v_s 0.03 instead of 0.05 rad/s, the shipped replica's pushes were taken for
-    friction: 81% missed); the diagnosis's friction columns model a hard Coulomb sign and pass
-    ``speed_frac=0`` (with 0.05 the replica's load-dependent friction was no longer named).
+    noise term alone the sign is so steep that the GP takes pushes for friction); the diagnosis's
+    friction columns model a hard Coulomb sign and pass ``speed_frac=0`` (a softer sign no longer
+    matches the step of the friction, and its load dependence goes unnamed)
+    (benchmarks/README.md, "sixth session: tuning history").
     """
     dq = np.asarray(dq, dtype=np.float64)
     rms = np.sqrt(np.mean(dq ** 2, axis=0)) if dq.shape[0] else np.zeros(dq.shape[1:])
