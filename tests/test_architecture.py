@@ -220,3 +220,80 @@ def test_the_writer_rule_catches_direct_writes(tmp_path):
                  "    fig.savefig(buf)\n    df.to_parquet(out)\n    open(out, 'w')\n    open(out)\n")
     assert [(fn, call) for fn, _, call in _direct_writes(f)] == [("g", "write_text"), ("g", "savefig"),
                                                                   ("g", "to_parquet"), ("g", "open")]
+
+
+# Each idea lives in one place. What may be written out only in its home module, with patterns
+# read on the code alone (comments and docstrings blanked), and the MAD factor anywhere at all.
+ONE_PLACE = {
+    "the robust scale (1.4826 x MAD): mmgp.data.statistics.mad_sd": (
+        "mmgp.data.statistics", [r"\b1\.4826", r"\b0\.674[45]", r"median\(\s*(np\.|numpy\.)?abs\(",
+                                 r"median\(\s*[^()]*\)\s*\.\s*abs\("]),
+    "a Gaussian log density: mmgp.gp.linalg.gaussian_logpdf": (
+        "mmgp.gp.linalg", [r"(log|sqrt)\(\s*2(\.0*)?\s*\*\s*(np\.|numpy\.|math\.|torch\.)?pi\b",
+                           r"(log|sqrt)\(\s*(np\.|numpy\.|math\.|torch\.)?pi\s*\*\s*2", r"\b1\.83787", r"\b0\.918938",
+                           # log 2 pi added to a log variance is the elementwise density; N * LOG_2PI a joint one
+                           r"LOG_2PI\s*\+", r"\+\s*LOG_2PI\b"]),
+    "a thread limit: mmgp.threads": (
+        "mmgp.threads", [r"threadpool_limits", r"set_num_threads", r"_NUM_THREADS\b", r"sched_getaffinity"]),
+}
+
+
+def _code_text(path: Path) -> str:
+    """``path``'s source with its comments and docstrings blanked (other strings kept): what runs."""
+    import io
+    import tokenize
+
+    src = path.read_text()
+    starts = [0]
+    for line in src.splitlines(keepends=True):
+        starts.append(starts[-1] + len(line))
+    docs = {(n.body[0].lineno, n.body[0].col_offset) for n in ast.walk(ast.parse(src))
+            if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and n.body
+            and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)
+            and isinstance(n.body[0].value.value, str)}
+    chars = list(src)
+    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+        if tok.type == tokenize.COMMENT or (tok.type == tokenize.STRING and tok.start in docs):
+            a = starts[tok.start[0] - 1] + tok.start[1]
+            b = starts[tok.end[0] - 1] + tok.end[1]
+            chars[a:b] = [c if c == "\n" else " " for c in chars[a:b]]
+    return "".join(chars)
+
+
+def _written_out(module: str, path: Path) -> list[str]:
+    import re
+
+    code, text = _code_text(path), path.read_text()
+    found = []
+    for idea, (home, patterns) in ONE_PLACE.items():
+        if module == home:
+            continue
+        for pat in patterns:
+            # the MAD factor may not appear even in prose: the helper's docstring states it
+            where = text if pat == r"\b1\.4826" else code
+            found += [f"{idea} written out ({m.group(0)!r})" for m in re.finditer(pat, where)]
+    return found
+
+
+def test_each_idea_is_written_out_in_one_place_only():
+    bad = [f"{p.relative_to(PKG.parent)}: {what}" for m, p in _modules() for what in _written_out(m, p)]
+    assert not bad, "written out outside its home module:\n" + "\n".join(bad)
+
+
+def test_the_one_place_rule_catches_copies(tmp_path):
+    # Each idea's usual spellings are caught; comments and docstrings (but for the MAD factor) are not code.
+    f = tmp_path / "x.py"
+    f.write_text('def f(x, m, v):\n    """log(2 * pi) in prose is fine."""\n    # np.log(2 * np.pi) in a comment too\n'
+                 "    s = 1.4826 * np.median(np.abs(x - np.median(x)))\n"
+                 "    a = -0.5 * (np.log(2 * np.pi * v) + (x - m) ** 2 / v)\n"
+                 "    b = -0.5 * math.log(2.0 * math.pi) - torch.log(torch.sqrt(2 * torch.pi * v))\n"
+                 "    c = -0.5 * (LOG_2PI + np.log(v)) - 0.5 * len(x) * LOG_2PI\n"
+                 "    with threadpool_limits(1):\n        torch.set_num_threads(1)\n"
+                 "    return {'OMP_NUM_THREADS': '1'}\n")
+    found = _written_out("mmgp.models.x", f)
+    counts = {idea: sum(idea in w for w in found) for idea in ONE_PLACE}
+    assert list(counts.values()) == [2, 4, 3], found
+    assert _written_out("mmgp.gp.linalg", f) == [w for w in found if "Gaussian" not in w]
+    g = tmp_path / "y.py"
+    g.write_text('"""1.4826 x the MAD."""\n')
+    assert len(_written_out("mmgp.models.y", g)) == 1 and _written_out("mmgp.data.statistics", g) == []

@@ -46,8 +46,8 @@ def sustained_offset_scan(z: np.ndarray, ok: np.ndarray, window: int, z_max: flo
     count (only these are averaged, scaled and flagged); window:
     samples averaged (centred); starts: first sample of each log (windows stay inside a log).
     Residuals are clipped at +-``CLIP_Z`` first. The running mean counts where at least half its
-    window is ``ok``; its centre and spread per joint are the median and 1.4826 x the median
-    absolute deviation over windows that are wholly ``ok``. Returns (flags (T,) bool, the largest joint's scaled deviation (T,))."""
+    window is ``ok``; its centre and spread per joint are the median and the robust standard
+    deviation (:func:`mmgp.data.statistics.mad_sd`) over windows that are wholly ``ok``. Returns (flags (T,) bool, the largest joint's scaled deviation (T,))."""
     T, n = z.shape
     ok = np.broadcast_to(ok[:, None] if ok.ndim == 1 else ok, (T, n))
     z = np.clip(z, -CLIP_Z, CLIP_Z)
