@@ -56,8 +56,7 @@ def disturbed_given_modes(loglik: np.ndarray, modes: np.ndarray, n_modes: int, p
     sample's own mode's undisturbed / disturbed likelihoods, uniform at each log's start."""
     idx = np.arange(len(modes))
     pair = np.stack([loglik[idx, modes], loglik[idx, n_modes + modes]], axis=1)
-    A = transition_matrix(1, 1.0, p_enter, p_leave)
-    return forward_backward(pair, A, np.full(2, 0.5), starts)[1][:, 1]
+    return forward_backward(pair, chain_matrix(1, True, 1.0, p_enter, p_leave), np.full(2, 0.5), starts)[1][:, 1]
 
 
 def stretches(labels: np.ndarray, starts: Sequence[int] = (0,)) -> tuple[np.ndarray, np.ndarray]:

@@ -403,13 +403,14 @@ class MultimodalSEM:
         p_mode = np.clip(post[:, :K] + (post[:, K:] if self.disturbance else 0.0), 0.0, 1.0)
         p_dist = np.clip(post[:, K:].sum(1), 0.0, 1.0) if self.disturbance else np.zeros(T)
         self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
-        if self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0:
+        abstained = self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0
+        if abstained:
             p_dist = np.zeros(T)
         # A mode lasts: shorter stretches take a neighbouring stretch's mode (one-hot below).
         unmerged = p_mode.argmax(1)
         modes = merge_short_runs(unmerged, min_mode_len, starts) if min_mode_len > 1 else unmerged
         moved = modes != unmerged
-        if self.disturbance and moved.any() and p_dist.any():
+        if self.disturbance and not abstained and moved.any():
             # With the other mode ruled out, a moved sample is its new mode's, undisturbed or
             # pushed, as the chain weighs them (a push can look like the other payload for
             # a fraction of a second; counted clean it would be missed).
