@@ -22,7 +22,7 @@ from ..data.logs import RobotLog
 from ..data.statistics import difference_noise_sd
 from ..models.robust import robust_regression
 from ..physics.context import Context, build_context, pin_model, smooth_sign_scale
-from ..physics.effects import build_atoms, effect_classes, effect_library
+from ..physics.effects import Effect, build_atoms, effect_classes, effect_library
 from ..physics.identification import base_parameters
 from . import separation as sep
 from .fitting import PhysicsFit
@@ -413,13 +413,42 @@ def raw_residual(prob: Problem, phys: PhysicsFit) -> np.ndarray:
     return prob.r_raw - A @ np.array([coef.get(k, 0.0) for k in keys])
 
 
+class AttachedBody(Effect):
+    """A rigid body attached to link ``index``: the link's ten inertial parameters (mass, first
+    moments, inertia about the link origin), linear, physically consistent in an admissible fit
+    (nothing attached is its nominal). Not a contract effect (no name): the yardstick a
+    re-identified rigid body is judged against (``reidentify.reidentify``), since CONTRACT section 3
+    names a rigid mass on the distal link a ``payload``, and such a mass has its own inertia,
+    which ``Payload``'s point mass lacks."""
+
+    scope = "link"
+
+    def atoms(self):
+        return tuple(("body", self.index, i) for i in range(10))
+
+    def columns(self, ctx):
+        Y = ctx.link_regressor(self.index)
+        return [Y[:, :, i] for i in range(10)]
+
+    def bodies(self, ctx):
+        return [(self.atoms(), np.zeros(10))]
+
+    @property
+    def masses(self):
+        return (self.atoms()[0],)
+
+    def where(self, ctx):
+        return {"link": ctx.link_names[self.index]}
+
+    def affected_joints(self, ctx):
+        return list(range(self.index + 1))
+
+
 def without_body(prob: Problem) -> Problem:
     """The problem whose library is what a re-identified body must beat (``reidentify``): the
     library less the rigid body, each payload candidate a whole attached body (its ten
     parameters, ``AttachedBody``): the contract names any rigid mass on the distal link a payload,
     and a rigid mass has its own inertia, which a point mass lacks."""
-    from ..physics.effects import AttachedBody
-
     library = [AttachedBody(e.index) if e.name == "payload" else e for e in prob.library if e.scope != "model"]
     return dataclasses.replace(prob, library=library)
 

@@ -132,6 +132,16 @@ class Effect:
         moment within reach of its frame)."""
         return []
 
+    def bodies(self, ctx: Context) -> list:
+        """Rigid bodies among the coefficients, ``(ten atoms, nominal (10,))``: nominal plus the
+        atoms' coefficients (Pinocchio's order) must be physically consistent (pseudo-inertia PSD)."""
+        return []
+
+    @property
+    def masses(self) -> tuple[AtomKey, ...]:
+        """Atoms whose coefficient is a mass added to the robot (kg)."""
+        return ()
+
     def relinearise(self, coef: dict, ctx: Context) -> Context:
         """The context with this effect's linearisation point moved to what ``coef`` says."""
         return ctx
@@ -407,6 +417,10 @@ class Payload(Effect):
     def nonneg(self):
         return (("pl", self.index, 0),)
 
+    @property
+    def masses(self):
+        return (("pl", self.index, 0),)
+
     def admissible(self, coef, ctx):
         # attached to the robot: the centre of mass lies within the robot's reach of the link
         # frame (else the first-moment columns are fitting something else)
@@ -472,29 +486,6 @@ class Payload(Effect):
         com = ", ".join(f"{c:.3f}" for c in params["com"])
         return (f"link {ctx.link_names[self.index]}: {self.label} of {format_value(params['mass'], std['mass'])} kg "
                 f"at [{com}] m (link frame)")
-
-
-class AttachedBody(Effect):
-    """A rigid body attached to link ``index``: the link's ten inertial parameters (mass, first
-    moments, inertia about the link origin), linear. Not a contract effect (no name): the yardstick
-    a re-identified rigid body is judged against (``mmgp.diagnosis.reidentify``), since CONTRACT
-    section 3 names a rigid mass on the distal link a ``payload``, and such a mass has its own
-    inertia, which :class:`Payload`'s point mass lacks."""
-
-    scope = "link"
-
-    def atoms(self):
-        return tuple(("body", self.index, i) for i in range(10))
-
-    def columns(self, ctx):
-        Y = ctx.link_regressor(self.index)
-        return [Y[:, :, i] for i in range(10)]
-
-    def where(self, ctx):
-        return {"link": ctx.link_names[self.index]}
-
-    def affected_joints(self, ctx):
-        return list(range(self.index + 1))
 
 
 class InertialParameters(Effect):

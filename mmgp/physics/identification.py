@@ -10,9 +10,11 @@ inertia about the body's joint frame origin). Not every combination of ``pi`` mo
   columns ``columns`` and the regrouping ``beta = regroup @ pi``, so ``Y @ pi == Y[..., columns]
   @ beta`` for every ``pi``. A linear function ``a @ pi`` of the parameters is identifiable iff
   ``a`` lies in the row space of ``regroup`` (:meth:`BaseParameters.identifiable`).
-* :func:`fit_consistent`: least squares of the full parameters (plus linear effect
-  coefficients) with each body physically consistent: its pseudo-inertia
-  ``[[tr(I)/2 1 - I, h], [h^T, m]]`` positive semi-definite (Wensing, Kim and Slotine, RA-L 2018:
+* :func:`fit_admissible`: least squares under physical constraints: bodies physically consistent,
+  magnitudes non-negative, a point mass's first moment within reach, upper bounds.
+  :func:`fit_consistent` is its case of the full parameters (plus linear effect coefficients) with
+  each body physically consistent: its pseudo-inertia ``[[tr(I)/2 1 - I, h], [h^T, m]]`` positive
+  semi-definite (Wensing, Kim and Slotine, RA-L 2018:
   some mass distribution has these parameters), an LMI solved with ``cvxpy``. Directions the data
   do not determine are held at the nominal parameters by a small ridge.
 * :func:`identifiability`: condition number of the (column-scaled) base regressor and the
@@ -122,42 +124,60 @@ def _pseudo_inertia_expr(p):
     return cp.bmat([[sigma, h], [h.T, cp.reshape(p[0], (1, 1), order="F")]])
 
 
-def fit_consistent(G: np.ndarray, c: np.ndarray, pi0: np.ndarray, *, nonneg: np.ndarray | None = None,
+def fit_admissible(G: np.ndarray, c: np.ndarray, *, bodies=(), nonneg=(), cones=(), upper=(),
                    ridge: float = 1e-6) -> tuple[np.ndarray, dict]:
-    """Least squares ``min x' G x - 2 c' x`` over ``x = [dpi (P,), theta (p,)]`` with every body
-    of ``pi0 + dpi`` physically consistent (pseudo-inertia PSD) and ``theta[nonneg] >= 0``.
+    """Least squares ``min x' G x - 2 c' x`` over ``x`` (N,) under physical constraints.
 
-    ``G`` (P + p, P + p), ``c`` (P + p,) the normal equations of the regressor (first P columns,
-    P = 10 B) and of the effect columns; ``pi0`` (P,) nominal parameters. A ridge of ``ridge``
-    times each column's own Gram diagonal (floored at 1e-9 of the largest) holds what the data
-    do not determine at the nominal parameters. Returns ``(x, info)`` with the solver status.
-    """
+    ``G`` (N, N), ``c`` (N,): normal equations. ``bodies``: (indices (10,), nominal (10,)) pairs,
+    ``nominal + x[indices]`` a rigid body's parameters (Pinocchio order) that must be physically
+    consistent (pseudo-inertia PSD); ``nonneg``: indices with ``x >= 0``; ``cones``: (i, indices,
+    radius) with ``|x[indices]| <= radius * x[i]`` (a point mass's first moment within reach of its
+    frame); ``upper``: (i, bound) with ``x[i] <= bound``. A ridge of ``ridge`` times each body
+    column's own Gram diagonal (floored at 1e-9 of the largest) holds what the data do not
+    determine at the nominal parameters; other columns get 1e-10 of the largest. Returns ``(x,
+    info)`` with the solver status."""
     import cvxpy as cp
 
-    P = len(pi0)
     N = len(c)
-    nonneg = np.zeros(N - P, bool) if nonneg is None else np.asarray(nonneg, bool)
     d = np.diag(G).copy()
-    reg = ridge * np.maximum(d, 1e-9 * max(d.max(), 1e-300))
-    reg[P:] = 1e-10 * max(d.max(), 1e-300)
+    top = max(d.max(), 1e-300) if N else 1.0
+    reg = np.full(N, 1e-10 * top)
+    for idx, _ in bodies:
+        idx = np.asarray(idx, int)
+        reg[idx] = ridge * np.maximum(d[idx], 1e-9 * top)
     scale = np.sqrt(np.clip(d, 1e-300, None) + reg)
-    Gs = (G + np.diag(reg)) / np.outer(scale, scale)
-    cs = c / scale
-    L = np.linalg.cholesky(Gs + 1e-12 * np.eye(N))
-    z = np.linalg.solve(L, cs)
+    L = np.linalg.cholesky((G + np.diag(reg)) / np.outer(scale, scale) + 1e-12 * np.eye(N))
     y = cp.Variable(N)  # x = y / scale: unit-scaled unknowns keep the conic solver well conditioned
     x = cp.multiply(1.0 / scale, y)
-    cons = [_pseudo_inertia_expr(pi0[10 * k:10 * k + 10] + x[10 * k:10 * k + 10]) >> 0 for k in range(P // 10)]
-    if nonneg.any():
-        cons.append(x[P:][np.flatnonzero(nonneg)] >= 0)
-    prob = cp.Problem(cp.Minimize(cp.sum_squares(L.T @ y - z)), cons)
+    cons = [_pseudo_inertia_expr(np.asarray(p0, dtype=np.float64) + x[list(idx)]) >> 0 for idx, p0 in bodies]
+    if len(nonneg):
+        cons.append(x[list(nonneg)] >= 0)
+    cons += [cp.norm(x[list(h)]) <= r * x[i] for i, h, r in cones]
+    cons += [x[i] <= b for i, b in upper]
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(L.T @ y - np.linalg.solve(L, c / scale))), cons)
     try:
         prob.solve(solver=cp.CLARABEL)
     except cp.SolverError:
         prob.solve(solver=cp.SCS, eps=1e-9, max_iters=20000)
     if y.value is None:
-        raise RuntimeError(f"consistent fit failed ({prob.status})")
+        raise RuntimeError(f"physically constrained fit failed ({prob.status})")
     return np.asarray(y.value) / scale, {"status": prob.status}
+
+
+def fit_consistent(G: np.ndarray, c: np.ndarray, pi0: np.ndarray, *, nonneg: np.ndarray | None = None,
+                   ridge: float = 1e-6) -> tuple[np.ndarray, dict]:
+    """Least squares ``min x' G x - 2 c' x`` over ``x = [dpi (P,), theta (p,)]`` with every body
+    of ``pi0 + dpi`` physically consistent (pseudo-inertia PSD) and ``theta[nonneg] >= 0``
+    (:func:`fit_admissible`).
+
+    ``G`` (P + p, P + p), ``c`` (P + p,) the normal equations of the regressor (first P columns,
+    P = 10 B) and of the effect columns; ``pi0`` (P,) nominal parameters; ``ridge`` holds what the
+    data do not determine at the nominal parameters. Returns ``(x, info)`` with the solver status.
+    """
+    P = len(pi0)
+    nonneg = np.zeros(len(c) - P, bool) if nonneg is None else np.asarray(nonneg, bool)
+    bodies = [(np.arange(10 * k, 10 * k + 10), pi0[10 * k:10 * k + 10]) for k in range(P // 10)]
+    return fit_admissible(G, c, bodies=bodies, nonneg=P + np.flatnonzero(nonneg), ridge=ridge)
 
 
 def body_quantities(pi: np.ndarray) -> dict:
