@@ -21,23 +21,39 @@ from mmgp.sim.held import HELD, held_pose
 CONFIG = "diagnose:\n  gp: false\n  plots: false\n"
 
 
+def _diagnosed(cache: dict, tmp_path_factory, seed: int) -> dict:
+    if seed not in cache:
+        d = tmp_path_factory.mktemp(f"still{seed}")
+        rec = held_pose(seed=seed)
+        log = d / "held.parquet"
+        rec.write(log)
+        (d / "fast.yaml").write_text(CONFIG)
+        res = CliRunner().invoke(app, ["diagnose", str(log), "--out", str(d / "out"), "--config",
+                                       str(d / "fast.yaml"), "--quiet"])
+        assert res.exit_code == 0, res.output
+        cache[seed] = {"rec": rec, "log": log, "doc": json.loads((d / "out" / "findings.json").read_text())}
+    return cache[seed]
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return {}
+
+
 # seed 1: a 2 s push on the shoulder and elbow, on which the library's unphysical masses once
 # made the whole rigid body look re-identified instead of the payload
 @pytest.fixture(scope="module", params=[0, 1])
-def held(tmp_path_factory, request):
-    d = tmp_path_factory.mktemp("still")
-    rec = held_pose(seed=request.param)
-    log = d / "held.parquet"
-    rec.write(log)
-    (d / "fast.yaml").write_text(CONFIG)
-    res = CliRunner().invoke(app, ["diagnose", str(log), "--out", str(d / "out"), "--config", str(d / "fast.yaml"),
-                                   "--quiet"])
-    assert res.exit_code == 0, res.output
-    return {"rec": rec, "log": log, "doc": json.loads((d / "out" / "findings.json").read_text())}
+def held(runs, tmp_path_factory, request):
+    return _diagnosed(runs, tmp_path_factory, request.param)
 
 
-def test_the_recording_holds_still_between_pushes(held):
-    rec = held["rec"]
+@pytest.fixture(scope="module")
+def held0(runs, tmp_path_factory):
+    return _diagnosed(runs, tmp_path_factory, 0)
+
+
+def test_the_recording_holds_still_between_pushes(held0):
+    rec = held0["rec"]
     free = rec.info["push_force"] == 0
     # the truth's own velocities: the arm barely moves unless pushed
     assert np.abs(rec.info["dq_true"][free]).max() < 0.05
@@ -85,8 +101,8 @@ def test_the_location_share_stays_a_share(held):
         assert 0.0 <= loc["fraction_of_torque_rms"] <= 1.0
 
 
-def test_velocity_check_judges_the_push_motion_and_still_flags_wrong_velocities(held):
-    log = read_log(held["log"])
+def test_velocity_check_judges_the_push_motion_and_still_flags_wrong_velocities(held0):
+    log = read_log(held0["log"])
     names = log.joint_names
     assert velocity_warnings(log.t, log.q, log.dq, names) == []
     # the same log with velocities in deg/s, or two joints' velocities swapped, is told
