@@ -338,7 +338,8 @@ class Diagnoser(BaseEstimator):
 
     def _stage_errors(self, prob, phys, use, denom, laps) -> dict:
         _stage("held-out errors per stage")
-        fit = st.stage_errors(prob, phys, use, denom)
+        still = st.still_joints(prob, use)
+        fit = st.stage_errors(prob, phys, use, denom, still=still)
         laps("fit_s")
         if self.gp:
             _stage("GP on what the physics leaves")
@@ -347,7 +348,7 @@ class Diagnoser(BaseEstimator):
                                                              seed=self.seed)
             laps("gp_s")
         return {**fit, "folds": self.n_folds, "samples_used": int(use.sum()),
-                "samples_excluded_as_disturbed": int((~use).sum()), "still_joints": st.still_joints(prob, use)}
+                "samples_excluded_as_disturbed": int((~use).sum()), "still_joints": still}
 
     def _mode_switch(self, prob, phys, pushes, laps):
         """Does a switchable effect (a payload) that changes over time (two sticky states)

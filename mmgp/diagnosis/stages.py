@@ -316,15 +316,52 @@ def honest_grams(prob: Problem, phys: PhysicsFit, use: np.ndarray) -> FoldGrams:
     return FoldGrams(phys.A[:, :, phys.S], prob.r, use, prob.folds, W=prob.M)
 
 
-def stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.ndarray) -> dict:
+def stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.ndarray, still=()) -> dict:
     """Held-out normalised MSE per joint of the nominal model and of nominal + found physics
     (fitted per fold with the selection's robust weights, scored on every kept sample): fold-wise
-    squared error over the torque's variance ``denom`` (n,)."""
+    squared error over the torque's variance ``denom`` (n,). For each joint named in ``still``
+    (``still_joints``), ``still_worse_p``: the one-sided p-value that the found physics predicts
+    it worse than both the nominal model and the torque's mean (``still_worse_p``)."""
     names, g = phys.ctx.joint_names, honest_grams(prob, phys, use)
     nte = g.nte.sum(0)
     thetas = [phys.grams.fit(phys.S, phys.w, k) for k in range(g.K)]
-    return {"nominal": _nmse(g.test_errors([], None).sum(0), nte, denom, names),
-            "with_physics": _nmse(g.test_errors(range(len(phys.S)), thetas).sum(0), nte, denom, names)}
+    nominal, found = g.test_errors([], None), g.test_errors(range(len(phys.S)), thetas)
+    out = {"nominal": _nmse(nominal.sum(0), nte, denom, names),
+           "with_physics": _nmse(found.sum(0), nte, denom, names)}
+    if still:
+        out["still_worse_p"] = still_worse_p(prob, use, nominal, found, [names.index(j) for j in still], names)
+    return out
+
+
+def mean_fold_errors(prob: Problem, use: np.ndarray) -> np.ndarray:
+    """(K, n) held-out squared errors of the torque's mean as the model: each test block of the
+    (low-passed, as the residual) torque against its fold's training mean, over the valid
+    equations (``prob.M``) of samples ``use``, as ``honest_grams`` scores every model."""
+    lp, W = prob.lowpass(prob.tau), prob.M
+    out = np.zeros((len(prob.folds), lp.shape[1]))
+    for k, (tr, te) in enumerate(prob.folds):
+        tr, te = tr[use[tr]], te[use[te]]
+        centre = (W[tr] * lp[tr]).sum(0) / np.maximum(W[tr].sum(0), 1e-300)
+        out[k] = (W[te] * (lp[te] - centre) ** 2).sum(0)
+    return out
+
+
+def still_worse_p(prob: Problem, use: np.ndarray, nominal: np.ndarray, found: np.ndarray, joints: list,
+                  names: list) -> dict:
+    """{joint name: p} for each of ``joints`` (indices): the one-sided signed-rank p-value over
+    the time blocks (``selection.signed_rank_p``) that the found physics' held-out errors
+    ``found`` (K, n) exceed the reference's, the better in total of the nominal model's
+    (``nominal`` (K, n)) and the torque's mean (``mean_fold_errors``). On a joint whose torque
+    varies by its noise alone every model's held-out error is the noise's plus its error in the
+    torque's level, so "worse" is a question of how sure, which the blocks answer."""
+    from .selection import signed_rank_p
+
+    mean = mean_fold_errors(prob, use)
+    out = {}
+    for j in joints:
+        ref = nominal[:, j] if nominal[:, j].sum() > mean[:, j].sum() else mean[:, j]
+        out[names[j]] = signed_rank_p(found[:, j] - ref)
+    return out
 
 
 def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.ndarray, *, points: int,
