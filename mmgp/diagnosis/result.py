@@ -86,7 +86,9 @@ class DiagnosisResult:
 
     ``findings``: list of dicts with ``effect``, ``joint`` or ``link``, ``params``, ``evidence``,
     ``explanation``; ``fit``: {stage: {"nmse": {joint: value}, "mean_nmse": value}, "folds",
-    "samples_used", "samples_excluded_as_disturbed", "still_joints"}; ``location``: per joint, where the nominal
+    "samples_used", "samples_excluded_as_disturbed", "still_joints", "still_worse_p" (with still
+    joints: {joint: p} that the found physics predicts it worse than the nominal model and the
+    mean)}; ``location``: per joint, where the nominal
     residual concentrates; ``labels``: per analysed sample {"t", "mode" (int), "disturbed"
     (0/1)} when modes or pushes were found; ``plot_data``: arrays for the residual plots;
     ``urdf``: the nominal URDF the diagnosis used (None: a robot given without one);
