@@ -221,7 +221,7 @@ class Prepared:
     """A log read, differentiated and turned into features by mmgp's own pipeline."""
 
     feats: object
-    basis_kind: str | None
+    mean_basis: object         # mmgp.models.features.MeanBasis or None
     robot: object
 
 
@@ -249,8 +249,8 @@ def prepare(case: Case, cfg) -> Prepared:
     logs = load_logs([case.log], robot=robot, diff_window_s=cfg.diff_window_s, rate_hz=cfg.rate_hz)
     semi = cfg.semiparametric if robot is not None else "none"
     fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs])) if cfg.friction_feature else None
-    basis_kind = resolve_mean_basis(cfg.mean_basis, robot, semi)
-    return Prepared(build_features(logs, semi, robot, fscale, basis_kind=basis_kind), basis_kind, robot)
+    basis = resolve_mean_basis(cfg.mean_basis, robot, semi)
+    return Prepared(build_features(logs, semi, robot, fscale, mean_basis=basis), basis, robot)
 
 
 class MmgpMethod:

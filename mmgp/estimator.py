@@ -22,7 +22,7 @@ from .gp.hyper import Hyper
 from .gp.linalg import resolve_device
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .models.features import build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
+from .models.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
 from .models.report import labels_frame, training_report
 
 MODEL_FORMAT = "mmgp-model"
@@ -168,7 +168,8 @@ class MultimodalGP(BaseEstimator):
     report_ : dict, the content of ``report.json``; ``heldout``: the held-out score per joint
         (:func:`mmgp.evaluation.heldout.heldout_score`: model, rigid body, mean).
     n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
-    friction_scale_ * ((n,) v_s in rad/s, or None), basis_kind_ *, basis_coef_ * (per mode
+    friction_scale_ * ((n,) v_s in rad/s, or None), mean_basis_ * (a
+    :class:`mmgp.models.features.MeanBasis` or None), basis_coef_ * (per mode
     (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
     logs_ (the checked logs), features_ (GP inputs and targets), sem_ (the fitted
     :class:`mmgp.models.sem.MultimodalSEM`, with its trace and last sweep).
@@ -288,7 +289,7 @@ class MultimodalGP(BaseEstimator):
         finally:
             self.device = device
 
-    def _sem_settings(self, basis_kind: str | None) -> dict:
+    def _sem_settings(self, mean_basis) -> dict:
         return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
                     max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
                     patience=self.patience, average_last=self.average_last, push_s=self.push_s,
@@ -297,7 +298,7 @@ class MultimodalGP(BaseEstimator):
                     final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
                     fit_points=self.fit_points, fit_iter=self.fit_iter, exclusion_s=self.exclusion_s,
                     block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s, min_mode_s=self.min_mode_s,
-                    calibrate=self.calibrate, shared_basis=(basis_kind or "").startswith("payload"),
+                    calibrate=self.calibrate, shared_basis=mean_basis is not None and mean_basis.shared,
                     rest_band=self.rest_band, seed=self.seed, progress=self.progress,
                     gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device})
 
@@ -337,25 +338,25 @@ class MultimodalGP(BaseEstimator):
         semi = self.semiparametric if robot is not None else "none"
         fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs_])) if self.friction_feature else None
         band = fscale is not None and rest_band_on(self.rest_band, resolve_mean_basis(self.mean_basis, robot, semi))
-        basis_kind = resolve_mean_basis(self.mean_basis, robot, semi, friction=band)
-        feats = build_features(logs_, semi, robot, fscale, basis_kind=basis_kind)
+        basis = resolve_mean_basis(self.mean_basis, robot, semi, friction=band)
+        feats = build_features(logs_, semi, robot, fscale, mean_basis=basis)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:
             raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
-        kw = self._sem_settings(basis_kind)
+        kw = self._sem_settings(basis)
         shortened = windows_for_duration(min(lg.t[-1] - lg.t[0] for lg in logs_), exclusion_s=self.exclusion_s,
                                          block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
                                          min_push_s=self.min_push_s, min_mode_s=self.min_mode_s,
                                          push_scan_s=self.push_scan_s)
         kw.update(shortened)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis, muted=feats.muted,
-                    rest=feats.rest_band(basis_kind, fscale) if band else None)
+                    rest=feats.rest_band(basis, fscale) if band else None)
         first, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw) if self.n_modes == "auto" else (None, None)
         K = first.n_modes if first is not None else k_max
         sem, dissipation = fit_dissipative(lambda: MultimodalSEM(n_modes=K, **kw), feats.X, feats.Y,
-                                           feats.velocity_reversal(basis_kind), first=first, **data)
+                                           feats.velocity_reversal(basis), first=first, **data)
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)
-        self.semiparametric_, self.basis_kind_, self.friction_scale_ = semi, basis_kind, fscale
+        self.semiparametric_, self.mean_basis_, self.friction_scale_ = semi, basis, fscale
         self.joint_names_ = logs_[0].joint_names or (robot.joint_names if robot is not None else
                                                      [f"joint_{j}" for j in range(logs_[0].n_joints)])
         self._set_sem(sem)
@@ -363,7 +364,7 @@ class MultimodalGP(BaseEstimator):
         self.labels_ = labels_frame(sem, logs_)
         self.report_ = training_report(
             settings=self._settings_record(), sem=sem, logs=logs_, joint_names=self.joint_names_,
-            robot_spec=self.robot_spec_, semiparametric=semi, basis_kind=basis_kind, robot=robot,
+            robot_spec=self.robot_spec_, semiparametric=semi, mean_basis=basis, robot=robot,
             with_friction=fscale is not None, mode_selection=selection,
             timings=dict(sem.timings_, load_s=t_load, total_s=time.perf_counter() - t0))
         self.report_.update(windows_shortened_s=shortened, thinning=thinning, dissipation=dissipation,
@@ -452,7 +453,7 @@ class MultimodalGP(BaseEstimator):
         coef = self.basis_coef_[mode]
         f = state_features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
                       friction_scale=self.friction_scale_, friction_sign=friction_sign,
-                      basis_kind=self.basis_kind_ if coef is not None else None)
+                      mean_basis=self.mean_basis_ if coef is not None else None)
         mean, std = gp.predict(f.X, include_noise=True) if return_std else (gp.predict(f.X, return_std=False), None)
         mean, std = mean.reshape(len(q), -1), (None if std is None else std.reshape(len(q), -1))
         if coef is not None:
@@ -501,7 +502,7 @@ class MultimodalGP(BaseEstimator):
         np.savez(buf, **arrays)
         meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
                 "n_modes": self.n_modes_, "joint_names": self.joint_names_, "settings": self._settings_record(),
-                "robot": self.robot_spec_, "mean_basis": self.basis_kind_, "gp_kinds": self.gp_kinds_,
+                "robot": self.robot_spec_, "mean_basis": getattr(self.mean_basis_, "name", None), "gp_kinds": self.gp_kinds_,
                 "gp_weights_sha256": digests}
         out_dir = Path(out_dir)
         atomic_write_bytes(out_dir / "model.npz", buf.getvalue())
@@ -533,7 +534,7 @@ class MultimodalGP(BaseEstimator):
         model.gp_weights_ = read_gp_weights(meta, z)
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support
         model.gp_kinds_ = list(meta.get("gp_kinds") or ["exact"] * K)
-        model.basis_kind_ = meta.get("mean_basis")
+        model.mean_basis_ = MeanBasis.parse(meta.get("mean_basis"))
         model.robot_spec_ = meta.get("robot") or None
         model.robot_ = read_model_robot(model.robot_spec_, model_dir / "model.json")
         model.semiparametric_ = model.semiparametric if model.robot_spec_ else "none"

@@ -185,7 +185,7 @@ def double_pendulum_arrays(T=300, rate=50.0, seed=0):
 def test_robot_model_round_trip_with_payload_basis(tmp_path):
     robot, arrays = double_pendulum_arrays()
     model = MultimodalGP(robot=robot, **FAST).fit(**arrays)
-    assert model.basis_kind_ == "payload+friction" and model.basis_coef_[0] is not None
+    assert model.mean_basis_.name == "payload+friction" and model.basis_coef_[0] is not None
     assert model.report_["robot"]["robot"] == "double_pendulum"
     twin = clone(model)                        # the RobotModel setting is copied, not shared
     assert twin.robot is not robot and twin.robot.joint_names == robot.joint_names

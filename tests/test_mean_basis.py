@@ -11,8 +11,9 @@ import pytest
 from mmgp.models.robust import fit_basis_coefficients, fit_shared_coefficients
 from mmgp.errors import InputError
 from mmgp import MultimodalGP
-from mmgp.models.features import resolve_mean_basis
+from mmgp.models.features import MeanBasis, resolve_mean_basis
 from mmgp.physics.robot import load_robot
+import mmgp
 from mmgp.sim import panda_modes
 
 PANDA7 = [f"panda_joint{i}" for i in range(1, 8)]
@@ -64,16 +65,45 @@ def test_shared_payload_coefficients_extrapolate_and_match_stacked_least_squares
 
 def test_mean_basis_resolution():
     robot = object()
-    assert resolve_mean_basis("auto", robot, "residual") == "payload"
-    assert resolve_mean_basis("rbd", robot, "residual") == "rbd"
+    assert resolve_mean_basis("auto", robot, "residual") == MeanBasis("payload")
+    assert resolve_mean_basis("rbd", robot, "residual") == MeanBasis("rbd")
     assert resolve_mean_basis("auto", None, "residual") is None
     assert resolve_mean_basis("auto", robot, "feature") is None
     assert resolve_mean_basis("none", robot, "residual") is None
-    assert resolve_mean_basis("payload", robot, "residual") == "payload"
+    assert resolve_mean_basis("payload", robot, "residual", friction=True) == MeanBasis("payload", friction=True)
     with pytest.raises(InputError, match="rbd"):
         resolve_mean_basis("rbd", None, "residual")
     with pytest.raises(InputError, match="mean_basis"):
         MultimodalGP(mean_basis="linear").fit(t=np.arange(20) * 0.01, q=np.zeros((20, 1)), tau=np.zeros((20, 1)))
+
+
+def test_mean_basis_names_round_trip_and_others_are_refused():
+    every = [MeanBasis(body, friction=f) for body in ("rbd", "payload") for f in (False, True)]
+    assert [b.name for b in every] == ["rbd", "rbd+friction", "payload", "payload+friction"]
+    assert all(MeanBasis.parse(b.name) == b for b in every) and MeanBasis.parse(None) is None
+    assert [b.shared for b in every] == [False, False, True, True]
+    assert [b.n_dry(7) for b in every] == [0, 14, 0, 14]
+    for bad in ("linear", "payload+viscous", "rbd+", "none", ""):
+        with pytest.raises(ValueError):
+            MeanBasis.parse(bad)
+
+
+def test_mean_basis_columns_are_the_regressor_and_the_closed_form_friction_columns():
+    robot = mmgp.load_robot(robot="panda")
+    n = robot.n_joints
+    rng = np.random.default_rng(2)
+    q, dq, ddq = (rng.normal(size=(9, n)) for _ in range(3))
+    tau_rbd, sign = robot.rnea(q, dq, ddq), np.sign(rng.normal(size=(9, n)))
+    Y = robot.regressor(q, dq, ddq)
+    np.testing.assert_array_equal(MeanBasis("rbd").columns(robot, q, dq, ddq, tau_rbd, None), Y)
+    B = MeanBasis("payload", friction=True).columns(robot, q, dq, ddq, tau_rbd, sign)
+    assert B.shape == (9, n, 10 + 2 * n)
+    np.testing.assert_array_equal(B[..., :10], Y[..., -10:])
+    for j in range(n):   # column 10 + j: Coulomb of joint j; 10 + n + j: its load-dependent friction
+        want_c, want_l = np.zeros((9, n)), np.zeros((9, n))
+        want_c[:, j], want_l[:, j] = sign[:, j], sign[:, j] * np.abs(tau_rbd[:, j])
+        np.testing.assert_array_equal(B[:, :, 10 + j], want_c)
+        np.testing.assert_array_equal(B[:, :, 10 + n + j], want_l)
 
 
 def test_trained_payload_model_round_trips_through_disk(tmp_path):
@@ -88,7 +118,7 @@ def test_trained_payload_model_round_trips_through_disk(tmp_path):
     assert 7 + 2 * 7 <= model.report_["mean_basis"]["rank"] <= 10 + 2 * 7
     model.save(tmp_path)
     back = MultimodalGP.load(tmp_path)
-    assert back.basis_kind_ == "payload+friction"
+    assert back.mean_basis_.name == "payload+friction"
     np.testing.assert_array_equal(back.basis_coef_[0], model.basis_coef_[0])
     rows = slice(20, 90)   # after the start transient, before the first push (t >= 1 s)
     q, dq, ddq = rec.q[rows], rec.info["dq_true"][rows], rec.info["ddq_true"][rows]

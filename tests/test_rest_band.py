@@ -188,12 +188,12 @@ def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
     log, _ = mmgp.demo_files()
     robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
     model = mmgp.MultimodalGP(n_modes=1, robot=robot, rest_band=True, max_sweeps=8, seed=0).fit(log)
-    assert model.basis_kind_ == "payload+friction"
+    assert model.mean_basis_.name == "payload+friction"
     coef = model.basis_coef_[0]
     assert coef.shape == (1, 10 + 2)          # the payload's 10 parameters, Coulomb and load-dependent levels
     model.save(tmp_path / "m")
     again = mmgp.MultimodalGP.load(tmp_path / "m")
-    assert again.basis_kind_ == "payload+friction"
+    assert again.mean_basis_.name == "payload+friction"
     # the report says how wide the band it read off the model is (the replica's friction)
     band = model.report_["friction_band_half_width"]
     assert len(band) == 1 and band[0][0] > 0
@@ -216,18 +216,19 @@ def test_branch_bases_are_the_basis_at_each_velocity_sign():
     # Features.rest_band builds the basis on each sliding branch by swapping the friction
     # columns; state_features builds it from scratch with the sign forced: they must agree.
     import mmgp
-    from mmgp.models.features import state_features
+    from mmgp.models.features import MeanBasis, state_features
 
     robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
     rng = np.random.default_rng(4)
     q, dq, ddq = rng.uniform(-1, 1, (50, 1)), rng.normal(scale=0.3, size=(50, 1)), rng.normal(size=(50, 1))
     tau = rng.normal(size=(50, 1))
     v_s = np.array([0.05])
-    f = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, basis_kind="payload+friction")
-    band = f.rest_band("payload+friction", v_s)
+    basis = MeanBasis("payload", friction=True)
+    f = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, mean_basis=basis)
+    band = f.rest_band(basis, v_s)
     for branch, sign in zip(band.basis_branches, (1.0, -1.0)):
         ref = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, friction_sign=sign,
-                             basis_kind="payload+friction").basis
+                             mean_basis=basis).basis
         np.testing.assert_allclose(branch, ref, rtol=1e-12, atol=1e-12)
     assert f.basis.shape[2] == 12 and band.sign_cols == [3]
 
@@ -353,7 +354,7 @@ def test_the_export_target_at_rest_is_the_levers_static_torque(tmp_path):
     spec = draw(1001, "lever", max_samples=1200)     # tuning lever1001: 100 Hz, 12 s, holds and two pushes
     log, _ = write_scenario(record(spec), tmp_path, "lever")
     model = mmgp.MultimodalGP(seed=0).fit(log)
-    assert model.basis_kind_ == "payload+friction"       # "auto": the band on, with a rigid-body mean
+    assert model.mean_basis_.name == "payload+friction"       # "auto": the band on, with a rigid-body mean
     qs = model.support_q_[:, 0]
     q = np.linspace(np.percentile(qs, 2), np.percentile(qs, 98), 100)
     static = -spec.lever["gravity_torque"] * np.cos(q)
@@ -373,7 +374,7 @@ def test_rest_band_auto_is_on_with_a_rigid_body_mean_only():
     log = Path(mmgp.__file__).parent / "resources" / "replica" / "replica_log.parquet"
     auto = mmgp.MultimodalGP(max_sweeps=6, seed=0).fit(log)
     forced = mmgp.MultimodalGP(max_sweeps=6, seed=0, rest_band=True).fit(log)
-    assert auto.basis_kind_ is None and forced.basis_kind_ is None
+    assert auto.mean_basis_ is None and forced.mean_basis_ is None
     assert np.all(np.asarray(auto.report_["friction_band_half_width"]) == 0)
     assert np.all(np.asarray(forced.report_["friction_band_half_width"]) > 0)
     with pytest.raises(InputError, match="rest_band.*'auto'"):
@@ -396,7 +397,7 @@ def test_a_hold_next_to_a_push_is_judged_on_its_own(tmp_path):
     truth = pd.read_parquet(tmp_path / "lever.labels.parquet")["disturbed"].to_numpy()
     model = mmgp.MultimodalGP(n_modes=1, seed=0).fit(str(tmp_path / "lever.parquet"))
     flagged = model.sem_.disturbed_
-    assert model.basis_kind_.endswith("+friction")     # the URDF beside the log: the band is on
+    assert model.mean_basis_.friction     # the URDF beside the log: the band is on
     assert flagged[truth == 0].mean() <= 0.01
     assert flagged[truth == 1].mean() >= 0.98
 
@@ -417,7 +418,7 @@ def test_dry_friction_acts_with_the_velocity_sign_where_the_joint_slides():
 def _one_way_lever(beta: float):
     """A 1-DOF mean basis [gravity-like column, Coulomb sign, sign x |load|] (T, 1, 3) on a log
     that slides one way only (dq < 0) between holds whose torque sits at the band's lower edge."""
-    from mmgp.models.mstep import ModeFitter, RestBand
+    from mmgp.models.mstep import FitterSettings, ModeFitter, RestBand
     from mmgp.models.sem import MultimodalSEM
 
     t = np.arange(400) * 0.05
@@ -433,7 +434,7 @@ def _one_way_lever(beta: float):
     y = np.where(moving, -(c + beta * load), -(c + abs(beta) * load))     # holds at the lower edge
     X = np.stack([q, dq, np.zeros_like(q), np.tanh(dq / v_s[0])], axis=1)
     branches = tuple(np.stack([np.cos(q), np.full_like(q, s), s * load], axis=1)[:, None, :] for s in (1.0, -1.0))
-    fitter = ModeFitter(X, y[:, None], MultimodalSEM(), basis=basis,
+    fitter = ModeFitter(X, y[:, None], FitterSettings.of(MultimodalSEM()), basis=basis,
                         band=RestBand(rest, [3], branches, dry_cols=[1, 2]))
     return fitter, moving
 
@@ -471,7 +472,7 @@ def test_a_hold_that_crosses_its_band_is_not_a_push(tmp_path):
     spec = dataclasses.replace(family.draw(14045556, "source"), pushes=[])
     family.write_scenario(family.record(spec), tmp_path, "lever")
     model = mmgp.MultimodalGP(n_modes=1, seed=0).fit(str(tmp_path / "lever.parquet"))
-    assert model.basis_kind_.endswith("+friction")
+    assert model.mean_basis_.friction
     assert model.sem_.disturbed_.mean() < 0.02
     band = model.sem_.friction_band_
     assert band.max() > 0.5          # the true band at rest is 1.0-1.3 N*m wide (0.315 + 0.279 |tau|)

@@ -52,6 +52,58 @@ def thin_logs(logs: list[RobotLog], rate_hz: float | None) -> tuple[list[RobotLo
                      "n_used": int(sum(lg.n_samples for lg in thinned))}
 
 
+@dataclass(frozen=True)
+class MeanBasis:
+    """The linear part of each mode's mean, under its GP: ``body`` "rbd" (every link's inertial
+    parameters: the rigid-body regressor) or "payload" (the distal body's ten, one coefficient
+    vector shared by the joints), with ``friction`` the per-joint dry-friction columns after them
+    (Coulomb and load-dependent: :func:`friction_columns`). Its ``name`` ("payload+friction") is
+    what a saved model records."""
+
+    body: str
+    friction: bool = False
+
+    BODIES = ("rbd", "payload")
+
+    def __post_init__(self):
+        if self.body not in self.BODIES:
+            raise ValueError(f"mean basis body must be one of {self.BODIES}, got {self.body!r}")
+
+    @classmethod
+    def parse(cls, name: str | None) -> "MeanBasis | None":
+        """The basis a saved ``name`` records ("rbd", "payload", either + "+friction"); None: none.
+        Raises ValueError on any other name."""
+        if name is None:
+            return None
+        body, plus, extra = str(name).partition("+")
+        if plus and extra != "friction":
+            raise ValueError(f"unknown mean basis {name!r}")
+        return cls(body, friction=bool(plus))
+
+    @property
+    def name(self) -> str:
+        return self.body + ("+friction" if self.friction else "")
+
+    @property
+    def shared(self) -> bool:
+        """One coefficient vector for every joint (a payload is one body)."""
+        return self.body == "payload"
+
+    def n_dry(self, n: int) -> int:
+        """How many of the last columns are dry friction, for ``n`` joints."""
+        return 2 * n if self.friction else 0
+
+    def columns(self, robot, q, dq, ddq, tau_rbd, dry_sign) -> np.ndarray:
+        """(T, n, p) the basis at states q, dq, ddq (T, n): the body's regressor columns, then
+        with ``friction`` the Coulomb and load-dependent columns of ``dry_sign`` (T, n), the
+        direction dry friction acts in, and the rigid body's torque ``tau_rbd`` (its load)."""
+        Y = robot.regressor(q, dq, ddq)
+        basis = Y if self.body == "rbd" else Y[..., -10:]
+        if not self.friction:
+            return basis
+        return np.concatenate([basis, friction_columns(dry_sign), friction_columns(dry_sign * np.abs(tau_rbd))], axis=2)
+
+
 @dataclass
 class Features:
     """GP inputs and targets built from logs. X (T, d), Y (T, n), tau_rbd (T, n) or None."""
@@ -65,37 +117,38 @@ class Features:
     muted: np.ndarray | None = None   # (n,) bool: dead-banded torque channels (no vote on pushes)
     has_sign: bool = False            # X's columns 3n..4n hold the smooth velocity sign
 
-    def rest_band(self, basis_kind: str | None, friction_scale: np.ndarray):
+    def rest_band(self, mean_basis: MeanBasis | None, friction_scale: np.ndarray):
         """The EM's :class:`~mmgp.models.mstep.RestBand` for these features: the rest weights of
         the velocities (X's columns n..2n) at the smooth-sign scale ``friction_scale`` (n,) rad/s,
-        the smooth-sign input columns (after q, dq, ddq) and the basis on both sliding branches;
-        None without the smooth-sign input."""
+        the smooth-sign input columns (after q, dq, ddq) and the basis ``mean_basis`` on both
+        sliding branches; None without the smooth-sign input."""
         from .mstep import RestBand
 
         n = self.Y.shape[1]
         if self.X.shape[1] < 4 * n:
             return None
         branches = None
-        if (basis_kind or "").endswith("+friction"):
-            # the last 2n columns are sign and sign x |tau_rbd| per joint (state_features)
+        dry = mean_basis.n_dry(n) if mean_basis is not None else 0
+        if dry:
+            # the last columns are sign and sign x |tau_rbd| per joint (MeanBasis.columns)
             load = np.abs(self.tau_rbd)
-            branches = tuple(np.concatenate([self.basis[..., :-2 * n], friction_columns(np.full_like(load, s)),
+            branches = tuple(np.concatenate([self.basis[..., :-dry], friction_columns(np.full_like(load, s)),
                                              friction_columns(s * load)], axis=2) for s in (1.0, -1.0))
-        dry = list(range(self.basis.shape[2] - 2 * n, self.basis.shape[2])) if branches is not None else []
+        dry = list(range(self.basis.shape[2] - dry, self.basis.shape[2])) if branches is not None else []
         return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches, dry)
 
 
-    def velocity_reversal(self, basis_kind: str | None):
+    def velocity_reversal(self, mean_basis: MeanBasis | None):
         """What changes sign when every joint velocity reverses (a
         :class:`~mmgp.models.dissipation.VelocityReversal`): dq (X's columns n..2n), its smooth
-        sign (3n..4n, with the friction input) and the basis's dry-friction columns (the last 2n,
-        "+friction"); the rigid-body terms are even in dq."""
+        sign (3n..4n, with the friction input) and the basis's dry-friction columns (the last
+        ``mean_basis.n_dry``); the rigid-body terms are even in dq."""
         from .dissipation import VelocityReversal
 
         n = self.Y.shape[1]
         dq = list(range(n, 2 * n))
         sign = list(range(3 * n, 4 * n)) if self.has_sign else []
-        return VelocityReversal(dq, dq + sign, 2 * n if (basis_kind or "").endswith("+friction") else 0)
+        return VelocityReversal(dq, dq + sign, mean_basis.n_dry(n) if mean_basis is not None else 0)
 
 
 def rest_band_on(setting, rigid_basis: str | None) -> bool:
@@ -109,38 +162,39 @@ def rest_band_on(setting, rigid_basis: str | None) -> bool:
     return bool(setting)
 
 
-def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> str | None:
-    """The mean basis a model uses: "payload", "rbd" or None (see MultimodalGP mean_basis), with
-    "+friction" appended when ``friction`` (a per-joint Coulomb column joins it)."""
+def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = False) -> MeanBasis | None:
+    """The mean basis a model uses (MultimodalGP ``mean_basis``: "auto", "payload", "rbd" or
+    "none"): a :class:`MeanBasis` with ``friction`` (the per-joint dry-friction columns join it),
+    or None."""
     rbd_ok = robot is not None and semiparametric == "residual"
     if kind == "auto":
         kind = "payload" if rbd_ok else "none"
-    if kind in ("rbd", "payload") and not rbd_ok:
+    if kind in MeanBasis.BODIES and not rbd_ok:
         raise InputError(f"mean_basis '{kind}' needs a robot model and semiparametric 'residual'")
     if kind == "none":
         return None
-    return kind + "+friction" if friction else kind
+    return MeanBasis(kind, friction=friction)
 
 
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
-                   friction_scale: np.ndarray | None = None, basis_kind: str | None = None) -> Features:
+                   friction_scale: np.ndarray | None = None, mean_basis: MeanBasis | None = None) -> Features:
     """GP inputs [q, dq, ddq, tanh(dq / v_s)(, tau_rbd)] and targets from checked logs."""
     q = np.concatenate([lg.q for lg in logs])
     dq = np.concatenate([lg.dq for lg in logs])
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, basis_kind=basis_kind)
+    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, mean_basis=mean_basis)
     f.t = np.concatenate([lg.t for lg in logs])
     f.muted = dead_banded(tau)
     return f
 
 
 def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-                   friction_sign=None, basis_kind: str | None = None) -> Features:
-    """GP inputs and targets at states q, dq, ddq and torques tau (T, n); ``friction_sign``
-    (+1 or -1, or per sample (T, 1)) replaces the smooth sign input (prediction on one sliding
-    branch)."""
+                   friction_sign=None, mean_basis: MeanBasis | None = None) -> Features:
+    """GP inputs and targets at states q, dq, ddq and torques tau (T, n), with the columns of
+    ``mean_basis`` (None: no basis); ``friction_sign`` (+1 or -1, or per sample (T, 1)) replaces
+    the smooth sign input (prediction on one sliding branch)."""
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
@@ -154,13 +208,8 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
         if semiparametric == "feature":
             X = np.concatenate([X, tau_rbd], axis=1)
     Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
-    basis = None
-    kind, _, extra = (basis_kind or "").partition("+")
-    if kind == "rbd":
-        basis = robot.regressor(q, dq, ddq)
-    elif kind == "payload":
-        basis = robot.regressor(q, dq, ddq)[..., -10:]     # the distal body's inertial parameters
-    if basis is not None and extra == "friction":
+    basis, sign = None, None
+    if mean_basis is not None and mean_basis.friction:
         if friction_scale is None:
             raise ValueError("a '+friction' mean basis needs the friction input (friction_scale)")
         # Dry friction per joint, last: Coulomb (smooth sign) and load-dependent (sign x |tau_rbd|,
@@ -169,7 +218,8 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
         # rest_band). No viscous column: fitted, it extrapolated far beyond the true damping at
         # speed.
         sign = dry_friction_sign(dq, friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
-        basis = np.concatenate([basis, friction_columns(sign), friction_columns(sign * np.abs(tau_rbd))], axis=2)
+    if mean_basis is not None:
+        basis = mean_basis.columns(robot, q, dq, ddq, tau_rbd, sign)
     return Features(X, Y, tau_rbd, list(starts), basis=basis, has_sign=friction_scale is not None)
 
 

@@ -7,7 +7,7 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Sequence
 
 import numpy as np
@@ -130,12 +130,33 @@ class RestBand:
     dry_cols: Sequence[int] = ()
 
 
+@dataclass(frozen=True)
+class FitterSettings:
+    """What one mode's model is fitted with, as the EM's settings of the same names
+    (:class:`~mmgp.models.sem.MultimodalSEM`): GP support and hyperparameter-fitting sizes, the
+    leave-window-out radius and objective block (s), whether the basis coefficients are shared
+    by the joints, the GP's kind and keyword arguments."""
+
+    max_support: int
+    fit_points: int
+    fit_iter: int
+    exclusion_s: float
+    block_s: float
+    shared_basis: bool
+    gp_method: str
+    n_inducing: int
+    gp_kwargs: dict
+
+    @classmethod
+    def of(cls, settings) -> "FitterSettings":
+        """The fields read off ``settings`` (an object with attributes of these names)."""
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(cls)})
+
+
 class ModeFitter:
     """One mode's model on given member samples and every sample's predictive under it.
 
-    X (T, d) inputs, Y (T, n) torques; ``settings`` the sweep settings (``max_support``,
-    ``fit_points``, ``fit_iter``, ``exclusion_s``, ``block_s``, ``shared_basis``, ``gp_kwargs``,
-    ``gp_method``, ``n_inducing``; a :class:`~mmgp.models.sem.MultimodalSEM`);
+    X (T, d) inputs, Y (T, n) torques; ``settings`` a :class:`FitterSettings`;
     ``t_axis`` (T,) one increasing time axis over all logs (enables the leave-window-out
     likelihood); ``basis`` (T, n, p) optional regressors of a robust linear mean under the GP;
     ``band`` an optional :class:`RestBand`: a joint at rest may then hold any torque within its
@@ -146,7 +167,7 @@ class ModeFitter:
     fitting subsets use seed 0: the seed plays no part in the fitted models.
     """
 
-    def __init__(self, X: np.ndarray, Y: np.ndarray, settings, *, t_axis: np.ndarray | None = None,
+    def __init__(self, X: np.ndarray, Y: np.ndarray, settings: FitterSettings, *, t_axis: np.ndarray | None = None,
                  basis: np.ndarray | None = None, band: RestBand | None = None, starts: Sequence[int] = (0,),
                  muted: np.ndarray | None = None):
         self.X, self.Y, self.settings, self.t_axis, self.basis = X, Y, settings, t_axis, basis

@@ -14,7 +14,7 @@ from .features import input_names
 
 
 def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_names: list[str],
-                    robot_spec: dict | None, semiparametric: str, basis_kind: str | None,
+                    robot_spec: dict | None, semiparametric: str, mean_basis,
                     with_friction: bool, mode_selection: dict | None, timings: dict, robot=None) -> dict:
     """The report of one training run: ``sem`` a fitted MultimodalSEM on ``logs``; ``settings``
     the estimator's JSON-able settings; ``timings`` in s; ``robot`` the RobotModel or None, for
@@ -32,7 +32,7 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
         "warnings": log_warnings(logs, joint_names, robot),
         "semiparametric": semiparametric,
         # The per-mode coefficients themselves are in model.npz (basis_coef_<k>).
-        "mean_basis": {"kind": basis_kind, "rank": int(sem.basis_rank_)},
+        "mean_basis": {"kind": mean_basis.name if mean_basis is not None else None, "rank": int(sem.basis_rank_)},
         "config": settings,
         "n_modes": len(sem.gps_),
         "mode_selection": mode_selection,

@@ -80,8 +80,12 @@ def _check_meta(meta: dict, path: Path) -> None:
     if digests is not None and (not isinstance(digests, list) or len(digests) != K or not all(
             d is None or isinstance(d, str) and len(d) == 64 for d in digests)):
         raise bad("gp_weights_sha256", f"a list of {K} SHA-256 hex digests or nulls")
-    if meta.get("mean_basis") not in (None, "payload", "rbd", "payload+friction", "rbd+friction"):
-        raise bad("mean_basis", "'payload', 'rbd' (optionally '+friction') or null")
+    from .features import MeanBasis
+
+    try:
+        MeanBasis.parse(meta.get("mean_basis"))
+    except ValueError:
+        raise bad("mean_basis", "'payload', 'rbd' (optionally '+friction') or null") from None
 
 
 def _robot_spec_ok(spec) -> bool:

@@ -67,7 +67,7 @@ from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import (chain_matrix, disturbed_given_modes, e_step, longest_runs_s, merge_short_runs,
                     runs_shorter_than)
 from .hmm import forward_backward
-from .mstep import (ModeFitter, PushPrior, RestBand, SweepParams, evenly_spaced, mode_emissions,
+from .mstep import (FitterSettings, ModeFitter, PushPrior, RestBand, SweepParams, evenly_spaced, mode_emissions,
                     update_parameters)
 from .robust import basis_rank
 from .scan import scan_probability, sustained_offset_scan
@@ -338,7 +338,8 @@ class MultimodalSEM:
                 raise ValueError(f"rest weights must be (T, n) = ({T}, {n}) with n sign columns")
         else:
             rest = None
-        return ModeFitter(X, Y, self, t_axis=axis, basis=basis, band=rest, starts=starts, muted=muted), starts
+        return (ModeFitter(X, Y, FitterSettings.of(self), t_axis=axis, basis=basis, band=rest, starts=starts,
+                           muted=muted), starts)
 
     def _initial_states(self, fitter: ModeFitter) -> tuple[np.ndarray, object]:
         """Start without labels (deterministic): one GP on everything, refitted (with the
