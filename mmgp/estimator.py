@@ -5,6 +5,7 @@ It is the one way to train: ``mmgp train`` parses its options into the construct
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -337,8 +338,9 @@ class MultimodalGP(BaseEstimator):
         t_load = time.perf_counter() - t0
         semi = self.semiparametric if robot is not None else "none"
         fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs_])) if self.friction_feature else None
-        band = fscale is not None and rest_band_on(self.rest_band, resolve_mean_basis(self.mean_basis, robot, semi))
-        basis = resolve_mean_basis(self.mean_basis, robot, semi, friction=band)
+        basis = resolve_mean_basis(self.mean_basis, robot, semi)
+        band = fscale is not None and rest_band_on(self.rest_band, basis)
+        basis = dataclasses.replace(basis, friction=True) if band and basis is not None else basis
         feats = build_features(logs_, semi, robot, fscale, mean_basis=basis)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:

@@ -26,7 +26,7 @@ from ..physics.effects import Effect, build_atoms, effect_classes, effect_librar
 from ..physics.identification import base_parameters
 from . import separation as sep
 from .fitting import PhysicsFit
-from .selection import FoldGrams, atom_indices, time_folds
+from .selection import FoldGrams, atom_indices, signed_rank_p, time_folds
 
 
 @dataclass(frozen=True)
@@ -319,9 +319,8 @@ def honest_grams(prob: Problem, phys: PhysicsFit, use: np.ndarray) -> FoldGrams:
 def stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.ndarray, still=()) -> dict:
     """Held-out normalised MSE per joint of the nominal model and of nominal + found physics
     (fitted per fold with the selection's robust weights, scored on every kept sample): fold-wise
-    squared error over the torque's variance ``denom`` (n,). For each joint named in ``still``
-    (``still_joints``), ``still_worse_p``: the one-sided p-value that the found physics predicts
-    it worse than both the nominal model and the torque's mean (``still_worse_p``)."""
+    squared error over the torque's variance ``denom`` (n,). With joints named in ``still``
+    (``still_joints``), also ``still_worse_p`` (:func:`still_worse_p`)."""
     names, g = phys.ctx.joint_names, honest_grams(prob, phys, use)
     nte = g.nte.sum(0)
     thetas = [phys.grams.fit(phys.S, phys.w, k) for k in range(g.K)]
@@ -350,12 +349,11 @@ def still_worse_p(prob: Problem, use: np.ndarray, nominal: np.ndarray, found: np
                   names: list) -> dict:
     """{joint name: p} for each of ``joints`` (indices): the one-sided signed-rank p-value over
     the time blocks (``selection.signed_rank_p``) that the found physics' held-out errors
-    ``found`` (K, n) exceed the reference's, the better in total of the nominal model's
-    (``nominal`` (K, n)) and the torque's mean (``mean_fold_errors``). On a joint whose torque
+    ``found`` (K, n) exceed the reference's, the worse in total of the nominal model's
+    (``nominal`` (K, n)) and the torque's mean (``mean_fold_errors``), as
+    ``plausibility.fit_warnings`` judges a still joint. On a joint whose torque
     varies by its noise alone every model's held-out error is the noise's plus its error in the
     torque's level, so "worse" is a question of how sure, which the blocks answer."""
-    from .selection import signed_rank_p
-
     mean = mean_fold_errors(prob, use)
     out = {}
     for j in joints:

@@ -99,9 +99,13 @@ class MeanBasis:
         direction dry friction acts in, and the rigid body's torque ``tau_rbd`` (its load)."""
         Y = robot.regressor(q, dq, ddq)
         basis = Y if self.body == "rbd" else Y[..., -10:]
-        if not self.friction:
-            return basis
-        return np.concatenate([basis, friction_columns(dry_sign), friction_columns(dry_sign * np.abs(tau_rbd))], axis=2)
+        return np.concatenate([basis, self.dry_columns(dry_sign, tau_rbd)], axis=2) if self.friction else basis
+
+    @staticmethod
+    def dry_columns(dry_sign: np.ndarray, tau_rbd: np.ndarray) -> np.ndarray:
+        """(T, n, 2n) the dry-friction columns: Coulomb (``dry_sign`` (T, n)) and load-dependent
+        (``dry_sign`` times the rigid body's torque's magnitude), one per joint."""
+        return np.concatenate([friction_columns(dry_sign), friction_columns(dry_sign * np.abs(tau_rbd))], axis=2)
 
 
 @dataclass
@@ -127,15 +131,15 @@ class Features:
         n = self.Y.shape[1]
         if self.X.shape[1] < 4 * n:
             return None
-        branches = None
-        dry = mean_basis.n_dry(n) if mean_basis is not None else 0
-        if dry:
-            # the last columns are sign and sign x |tau_rbd| per joint (MeanBasis.columns)
-            load = np.abs(self.tau_rbd)
-            branches = tuple(np.concatenate([self.basis[..., :-dry], friction_columns(np.full_like(load, s)),
-                                             friction_columns(s * load)], axis=2) for s in (1.0, -1.0))
-        dry = list(range(self.basis.shape[2] - dry, self.basis.shape[2])) if branches is not None else []
-        return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches, dry)
+        branches, dry_cols = None, []
+        n_dry = mean_basis.n_dry(n) if mean_basis is not None else 0
+        if n_dry:
+            # the basis with its dry-friction columns (the last) on each sliding branch
+            p = self.basis.shape[2]
+            branches = tuple(np.concatenate([self.basis[..., :-n_dry], mean_basis.dry_columns(
+                np.full_like(self.tau_rbd, s), self.tau_rbd)], axis=2) for s in (1.0, -1.0))
+            dry_cols = list(range(p - n_dry, p))
+        return RestBand(rest_weight(self.X[:, n:2 * n], friction_scale), list(range(3 * n, 4 * n)), branches, dry_cols)
 
 
     def velocity_reversal(self, mean_basis: MeanBasis | None):
@@ -151,7 +155,7 @@ class Features:
         return VelocityReversal(dq, dq + sign, mean_basis.n_dry(n) if mean_basis is not None else 0)
 
 
-def rest_band_on(setting, rigid_basis: str | None) -> bool:
+def rest_band_on(setting, rigid_basis: MeanBasis | None) -> bool:
     """Whether training uses the friction band at rest (MultimodalGP ``rest_band``): ``setting``
     True / False, or "auto": on where the mean has a rigid-body basis (``rigid_basis``, from
     :func:`resolve_mean_basis` without friction), whose load makes the friction columns. Without
