@@ -204,6 +204,49 @@ def _constrained_modes(eff, rm: dict, base: np.ndarray, C: np.ndarray, e: np.nda
     return total - base, boot, _mode_presence(Gk, ck, yk, nonneg, cones, alpha)
 
 
+def _stretch_centred(x: np.ndarray, Wv: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """``x`` (T, n[, p]) minus its ``Wv``-weighted (T, n) mean over each unbroken stretch of
+    ``labels`` (T,), per joint (and column)."""
+    out = np.array(x, dtype=np.float64)
+    bounds = np.r_[0, np.flatnonzero(np.diff(labels) != 0) + 1, len(labels)]
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        wv = Wv[a:b].reshape(b - a, Wv.shape[1], *([1] * (x.ndim - 2)))
+        out[a:b] -= (wv * x[a:b]).sum(0) / (wv.sum(0) + 1e-300)
+    return out
+
+
+def modes_differ_in_motion(C: np.ndarray, y: np.ndarray, w: np.ndarray, V: np.ndarray, labels: np.ndarray,
+                           totals: np.ndarray, t: np.ndarray, f_c: float | None, n_folds: int,
+                           alpha: float) -> bool:
+    """Whether each mode's coefficients ``totals`` (2, p) predict that mode's own samples better
+    than the other mode's do, on what varies within the mode's unbroken stretches (``labels``
+    (T,) 0/1): ``y`` (T, n) the residual without the effect, ``C`` (T, n, p) its columns, both
+    centred per stretch; ``w`` (n,) joint weights, ``V`` (T, n) valid equations. Held out over
+    ``n_folds`` time blocks of the mode's samples (the mode's fit on the other blocks against the
+    other mode's coefficients), one-sided signed-rank test at ``alpha`` per mode.
+
+    Why within stretches: a payload's torque follows the pose, so where the robot moves within a
+    mode the two modes' payloads predict differently; a push held at a held pose is a constant
+    torque at a constant pose, which a stretch's mean takes whole, and which any second "payload"
+    matches at that one pose (benchmarks/README.md, "a held push is not a payload")."""
+    Wv = V * w[None, :]
+    Cc, yc = _stretch_centred(C, Wv, labels), _stretch_centred(y, Wv, labels)
+    for m in range(2):
+        idx = np.flatnonzero(labels == m)
+        if len(idx) < 2 * n_folds:
+            return False
+        d = []
+        for tr, te in time_folds(len(idx), n_folds, t[idx], f_c):
+            tr, te = idx[tr], idx[te]
+            th = solve_gram(np.einsum("tj,tjp,tjq->pq", Wv[tr], Cc[tr], Cc[tr]),
+                            np.einsum("tj,tjp,tj->p", Wv[tr], Cc[tr], yc[tr]))
+            sse = [float((Wv[te] * (yc[te] - Cc[te] @ c) ** 2).sum()) for c in (totals[1 - m], th)]
+            d.append(sse[0] - sse[1])
+        if signed_rank_p(np.array(d)) >= alpha:
+            return False
+    return True
+
+
 def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: np.ndarray, f_c: float | None,
                      base_coef: dict, ctx, *, alpha: float, n_folds: int, max_samples: int,
                      init: np.ndarray | None = None) -> ModeSwitch | None:
@@ -214,7 +257,9 @@ def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: 
     atom -> coefficient of the selected physics fit (an effect not in it has zeros); ``init``
     (T,) 0/1 the multimodal learner's two modes, where the switching fits start. All
     candidates get an in-sample screen; the two with the largest gain get the held-out test at
-    family-wise level ``alpha`` over every candidate.
+    family-wise level ``alpha`` over every candidate; a candidate that passes is kept when its
+    modes are physically possible (``_constrained_modes``) and differ where the robot moves within
+    them (``modes_differ_in_motion``: a push held at one pose matches a second payload there).
     """
     T = len(t)
     step, lag = _thinning(T, t, f_c, max_samples)
@@ -229,7 +274,10 @@ def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: 
         if rm["p"] < alpha / len(cands):
             fit = _constrained_modes(eff, rm, base[eff], C[idx], e_all[idx], w, M[idx], ctx, folds,
                                      alpha=alpha / 2)
-            if fit is not None:
+            labels = rm["post"].argmax(1)
+            if fit is not None and modes_differ_in_motion(
+                    C[idx], e_all[idx] + C[idx] @ base[eff], w, M[idx], labels, base[eff] + fit[0], t[idx], f_c,
+                    len(folds), alpha / 2):
                 best.append((eff, {**rm, "theta": fit[0], "boot": fit[1], "present": fit[2]}))
     if not best:
         return None
