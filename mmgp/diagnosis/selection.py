@@ -28,6 +28,18 @@ def time_folds(T: int, K: int, t: np.ndarray, f_c: float | None):
     return time_block_folds(T, K, gap=min(gap, T // (4 * K)))
 
 
+def carried_folds(M: np.ndarray, K: int, t: np.ndarray, f_c: float | None):
+    """``time_folds`` laid over the samples that carry an equation (``M`` (T, n): some joint's
+    equation valid), as indices into all T samples. A block where every joint rests holds no
+    equation: its held-out gain is exactly zero, the signed-rank test drops it, and a log that
+    rests most of the time (poses held between moves) would be judged on a few blocks whose test
+    cannot reach the level. Every sample carries one (or too few do for K blocks): ``time_folds``."""
+    carry = np.flatnonzero((np.asarray(M) > 0).any(1))
+    if len(carry) == len(t) or len(carry) < 4 * K:
+        return time_folds(len(t), K, t, f_c)
+    return [(carry[tr], carry[te]) for tr, te in time_folds(len(carry), K, t[carry], f_c)]
+
+
 def signed_rank_p(d: np.ndarray) -> float:
     """One-sided p-value of "the paired fold differences ``d`` (K,) are centred above zero":
     Wilcoxon signed-rank test (exact for small K). Distribution-free: a real effect's gain

@@ -26,7 +26,7 @@ from ..physics.effects import Effect, build_atoms, effect_classes, effect_librar
 from ..physics.identification import base_parameters
 from . import separation as sep
 from .fitting import PhysicsFit
-from .selection import FoldGrams, atom_indices, signed_rank_p, time_folds
+from .selection import FoldGrams, atom_indices, carried_folds, signed_rank_p
 
 
 @dataclass(frozen=True)
@@ -114,10 +114,10 @@ def build_problem(log: RobotLog, robot, n_samples_in_log: int, smear_s: float, *
         library = effect_library(ctx, effects=effects, payload_links=payload_links)
     r_raw = log.tau - ctx.tau_rbd
     lp, f_c = lowpass_for(t, dq) if lowpass else (identity, None)
-    return Problem(t=t, tau=log.tau, ctx=ctx, r_raw=r_raw, r=lp(r_raw), lowpass=lp, f_c=f_c,
-                   M=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor),
+    M = sep.valid_mask(dq, vs, t, f_c, factor=rest_factor)
+    return Problem(t=t, tau=log.tau, ctx=ctx, r_raw=r_raw, r=lp(r_raw), lowpass=lp, f_c=f_c, M=M,
                    M_scan=sep.valid_mask(dq, vs, t, f_c, factor=rest_factor, min_rest_periods=0.0),
-                   folds=time_folds(len(t), n_folds, t, f_c),
+                   folds=carried_folds(M, n_folds, t, f_c),
                    library=library,
                    n_samples_in_log=n_samples_in_log, smear_s=smear_s)
 
