@@ -27,7 +27,8 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    of both inherits that; the scan alone keeps false pushes the gate removes; the strong-span
    exemption keeps a long push whose part the learner's GP absorbed (measured on
    ``benchmarks/bench_diagnose.py``: benchmarks/README.md, "sixth session: tuning history").
-3. *Name*: forward selection on time-block cross-validation (``n_folds`` blocks): an effect is
+3. *Name*: forward selection on time-block cross-validation (``n_folds`` blocks laid over the
+   samples that carry an equation, ``selection.carried_folds``): an effect is
    added only while the best candidate's paired held-out gain is significant (one-sided
    Wilcoxon signed-rank test over the blocks; an effect on one joint's torque is tested on that
    joint and on the joint-weighted sum, the smaller p doubled, the weighted total not raised:
