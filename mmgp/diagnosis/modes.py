@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..models.estep import stretches
 from ..models.hmm import forward_backward, transition_matrix
 from ..physics.effects import Effect
 from ..models.robust import solve_gram
@@ -208,9 +209,9 @@ def _stretch_centred(x: np.ndarray, Wv: np.ndarray, labels: np.ndarray) -> np.nd
     """``x`` (T, n[, p]) minus its ``Wv``-weighted (T, n) mean over each unbroken stretch of
     ``labels`` (T,), per joint (and column)."""
     out = np.array(x, dtype=np.float64)
-    bounds = np.r_[0, np.flatnonzero(np.diff(labels) != 0) + 1, len(labels)]
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        wv = Wv[a:b].reshape(b - a, Wv.shape[1], *([1] * (x.ndim - 2)))
+    for a, length in zip(*stretches(labels)):
+        b = a + length
+        wv = Wv[a:b].reshape(length, Wv.shape[1], *([1] * (x.ndim - 2)))
         out[a:b] -= (wv * x[a:b]).sum(0) / (wv.sum(0) + 1e-300)
     return out
 
@@ -238,8 +239,7 @@ def modes_differ_in_motion(C: np.ndarray, y: np.ndarray, w: np.ndarray, V: np.nd
         d = []
         for tr, te in time_folds(len(idx), n_folds, t[idx], f_c):
             tr, te = idx[tr], idx[te]
-            th = solve_gram(np.einsum("tj,tjp,tjq->pq", Wv[tr], Cc[tr], Cc[tr]),
-                            np.einsum("tj,tjp,tj->p", Wv[tr], Cc[tr], yc[tr]))
+            th = _wls(Cc[tr], yc[tr], Wv[tr])
             sse = [float((Wv[te] * (yc[te] - Cc[te] @ c) ** 2).sum()) for c in (totals[1 - m], th)]
             d.append(sse[0] - sse[1])
         if signed_rank_p(np.array(d)) >= alpha:
@@ -274,10 +274,9 @@ def find_mode_switch(cands, e_all: np.ndarray, w: np.ndarray, M: np.ndarray, t: 
         if rm["p"] < alpha / len(cands):
             fit = _constrained_modes(eff, rm, base[eff], C[idx], e_all[idx], w, M[idx], ctx, folds,
                                      alpha=alpha / 2)
-            labels = rm["post"].argmax(1)
             if fit is not None and modes_differ_in_motion(
-                    C[idx], e_all[idx] + C[idx] @ base[eff], w, M[idx], labels, base[eff] + fit[0], t[idx], f_c,
-                    len(folds), alpha / 2):
+                    C[idx], e_all[idx] + C[idx] @ base[eff], w, M[idx], rm["post"].argmax(1), base[eff] + fit[0],
+                    t[idx], f_c, len(folds), alpha / 2):
                 best.append((eff, {**rm, "theta": fit[0], "boot": fit[1], "present": fit[2]}))
     if not best:
         return None
