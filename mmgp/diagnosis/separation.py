@@ -92,13 +92,37 @@ def valid_mask(dq: np.ndarray, v_s: np.ndarray, t: np.ndarray, f_c: float | None
     return M
 
 
-def _chi2_statistic(e: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sum over valid joints of the squared residual in robust (MAD) noise units, and the number
-    of valid joints, per sample."""
+def _chi2_statistic(e: np.ndarray, V: np.ndarray, R: np.ndarray, band) -> tuple[np.ndarray, np.ndarray]:
+    """Sum over valid joints ``V`` of the squared residual beyond ``band`` (:func:`beyond_band`,
+    after the median of the equations ``R`` is taken off) in robust (MAD) noise units of ``R``,
+    and the number of valid joints, per sample."""
     n = e.shape[1]
-    med = np.array([np.median(e[V[:, j], j]) if V[:, j].any() else 0.0 for j in range(n)])
-    s = np.array([mad_sd(e[V[:, j], j]) if V[:, j].any() else 1.0 for j in range(n)]) + 1e-300
-    return ((((e - med) / s) ** 2) * V).sum(1), V.sum(1)
+    med = np.array([np.median(e[R[:, j], j]) if R[:, j].any() else 0.0 for j in range(n)])
+    s = np.array([mad_sd(e[R[:, j], j]) if R[:, j].any() else 1.0 for j in range(n)]) + 1e-300
+    return (((beyond_band(e - med, band) / s) ** 2) * V).sum(1), V.sum(1)
+
+
+def hold_interiors(M_scan: np.ndarray, t: np.ndarray, f_c: float | None) -> np.ndarray:
+    """(T,) bool: the samples where the whole robot holds still, less a filter memory at each end.
+
+    A hold is a stretch in which no joint's equation is scanned (``M_scan`` (T, n) 0: each joint
+    at rest or within the filter's memory of rest); its first and last filter memory (half a
+    cutoff period, past the memory ``M_scan`` already adds) still carry the low-passed motion
+    around it. Inside, every joint is at rest or pushed: a stuck joint holds any torque within
+    its friction band, so what a push shows there is the torque beyond the band
+    (:func:`beyond_band`)."""
+    still = ~(np.asarray(M_scan) > 0).any(1)
+    h = int(round(0.5 / (f_c * float(np.median(np.diff(t)))))) if f_c and len(t) > 1 else 0
+    inner = np.zeros(len(t), bool)
+    for a, b in runs(still):
+        inner[a + 2 * h:max(b - 2 * h, a + 2 * h)] = True
+    return inner
+
+
+def beyond_band(e: np.ndarray, band: np.ndarray) -> np.ndarray:
+    """(T, n) the part of the residual ``e`` (T, n) beyond the friction band ``[-band, band]``
+    (``band`` (T, n) or (n,) >= 0, N*m): zero inside it (a stuck joint can hold it)."""
+    return np.sign(e) * np.maximum(np.abs(e) - band, 0.0)
 
 
 def _drop_unresolved(mask: np.ndarray, t: np.ndarray, f_c: float) -> np.ndarray:
@@ -113,7 +137,8 @@ def _drop_unresolved(mask: np.ndarray, t: np.ndarray, f_c: float) -> np.ndarray:
 
 
 def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None, alpha: float = 0.01,
-                      valid: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                      valid: np.ndarray | None = None, reference: np.ndarray | None = None,
+                      band: np.ndarray | float = 0.0) -> tuple[np.ndarray, dict]:
     """Flag samples where the (low-passed) residual ``e`` (T, n) N*m is too large to be noise.
 
     Each joint is scaled by a robust (MAD) noise level; the sum of squares over joints is
@@ -121,14 +146,17 @@ def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None,
     is the chi-square quantile at the Bonferroni level ``alpha / T_eff``, with ``T_eff`` the
     number of independent samples the filter leaves (``2 f_c`` per second). Flagged stretches are
     widened to where the statistic returns to its 99% noise band. ``valid`` (T, n) bool: joint
-    equations to use. Returns the mask (T,) and {"threshold", "peaks" (per span, in units of the
+    equations to use; ``reference`` (T, n) bool: the equations the noise level is taken on
+    (default ``valid``); ``band`` (T, n) N*m >= 0: a residual within it is no evidence (a stuck
+    joint's friction band; :func:`beyond_band`). Returns the mask (T,) and {"threshold", "peaks" (per span, in units of the
     threshold), "effective_samples", "spans" (s)}.
     """
     from scipy.stats import chi2
 
     T, n = e.shape
     V = np.ones((T, n), bool) if valid is None else np.asarray(valid, bool)
-    z2, df = _chi2_statistic(e, V)
+    R = V if reference is None else np.asarray(reference, bool)
+    z2, df = _chi2_statistic(e, V, R, band)
     dur = float(t[-1] - t[0]) if T > 1 else 1.0
     T_eff = max(1.0, min(T, 2.0 * f_c * dur)) if f_c else float(T)
     thr_df = np.array([chi2.ppf(1 - alpha / T_eff, d) if d > 0 else np.inf for d in range(n + 1)])

@@ -243,6 +243,59 @@ def start_residual(prob: Problem, lib: LibraryFit, start) -> np.ndarray:
     return prob.r_raw - A @ np.array([coef[k] for k in keys])
 
 
+def friction_band(coef: dict, ctx: Context) -> np.ndarray:
+    """(T, n) the dry-friction band each joint can hold while stuck, N*m, from the fitted atoms
+    ``coef`` (atom key -> value): Coulomb ``("sign", j)`` plus the load-dependent part
+    ``("load", j)`` times the joint's load. Zero on a joint without chosen dry friction."""
+    T, n = ctx.q.shape
+    band = np.zeros((T, n))
+    for j in range(n):
+        band[:, j] = coef.get(("sign", j), 0.0) + coef.get(("load", j), 0.0) * np.abs(ctx.load[:, j])
+    return band
+
+
+def band_uncertainty(prob: Problem, e: np.ndarray, valid: np.ndarray, level: float = 0.95) -> np.ndarray:
+    """(n,) N*m: how much wider each joint's dry-friction band may be than the model's, at
+    ``level`` (one-sided): the upper confidence bound of a Coulomb level fitted with a constant
+    to the residual ``e`` (T, n) on the joint's scanned equations ``valid`` (T, n), its standard
+    error from the filter's independent samples (``2 f_c`` per second). A joint that slides one
+    way only cannot tell friction from an offset: its bound is infinite."""
+    from scipy.stats import norm
+
+    sign = prob.lowpass(np.tanh(prob.ctx.dq / np.asarray(prob.ctx.v_s)[None, :]))
+    dur = float(prob.t[-1] - prob.t[0]) if len(prob.t) > 1 else 1.0
+    out = np.full(e.shape[1], np.inf)
+    for j in range(e.shape[1]):
+        m = valid[:, j]
+        if m.sum() < 3:
+            continue
+        X = np.stack([sign[m, j], np.ones(m.sum())], axis=1)
+        G = X.T @ X
+        if np.linalg.cond(G) > 1e12:
+            continue
+        c = np.linalg.solve(G, X.T @ e[m, j])
+        r = e[m, j] - X @ c
+        n_eff = min(m.sum(), 2.0 * prob.f_c * dur * m.mean()) if prob.f_c else m.sum()
+        var = (r @ r) / max(m.sum() - 2, 1) * np.linalg.inv(G)[0, 0] * m.sum() / max(n_eff, 1.0)
+        out[j] = max(c[0], 0.0) + norm.ppf(level) * np.sqrt(var)
+    return out
+
+
+def scan(prob: Problem, e: np.ndarray, band: np.ndarray, *, push_alpha: float,
+         exclude: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """:func:`.separation.scan_disturbances` of the residual ``e`` (T, n) on the scanned
+    equations (``prob.M_scan``) and on the whole-robot holds (:func:`.separation.hold_interiors`),
+    where only the torque beyond each joint's friction ``band`` (T, n) counts; the noise level is
+    the scanned equations'. ``exclude`` (T,) bool: samples left out (near mode switches)."""
+    valid = prob.M_scan > 0
+    hold = sep.hold_interiors(prob.M_scan, prob.t, prob.f_c)
+    band = band + band_uncertainty(prob, e, valid)[None, :]
+    if exclude is not None:
+        valid, hold = valid & ~exclude[:, None], hold & ~exclude
+    return sep.scan_disturbances(e, prob.t, f_c=prob.f_c, valid=valid | hold[:, None], reference=valid,
+                                 band=band * hold[:, None], alpha=push_alpha)
+
+
 def separate_pushes(prob: Problem, lib: LibraryFit, selector, *, method: str, push_alpha: float, em_modes: int,
                     em_points: int, em_gate_peak: float, seed: int, start=(), em: dict | None = None) -> Separation:
     """Which samples an external force disturbed (``method``: see ``SEPARATION_METHODS``).
@@ -268,13 +321,15 @@ def separate_pushes(prob: Problem, lib: LibraryFit, selector, *, method: str, pu
     g0 = FoldGrams(lib.A, prob.r, np.ones(T, bool), prob.folds, W=lib.weights)
     chosen = selector.fit(candidates(prob, start), lib.keys, g0, w0, lib.ctx, start=start).selected_
     S0 = atom_indices(chosen, {a: i for i, a in enumerate(lib.keys)})
-    e0 = prob.r - (lib.A[:, :, S0] @ g0.fit(S0, w0) if S0 else 0.0)
-    disturbed, scan = sep.scan_disturbances(e0, prob.t, f_c=prob.f_c, valid=prob.M_scan > 0, alpha=push_alpha)
-    info = {**info, **scan}
+    coef0 = g0.fit(S0, w0) if S0 else np.zeros(0)
+    e0 = prob.r - (lib.A[:, :, S0] @ coef0 if S0 else 0.0)
+    band = friction_band({lib.keys[i]: c for i, c in zip(S0, coef0)}, lib.ctx)
+    disturbed, found = scan(prob, e0, band, push_alpha=push_alpha)
+    info = {**info, **found}
     if method == "auto" and disturbed.any():
         # as a gate the learner can only drop spans: with none scanned it is not needed
         em = run_learner(prob, em_modes, max_points=em_points, seed=seed, resid=resid, previous=em)
-        disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=scan["peaks"], strong=em_gate_peak)
+        disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=found["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)
 
@@ -413,12 +468,12 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
     index = {a: i for i, a in enumerate(phys.keys)}
     C = phys.A[:, :, [index[a] for a in ms.effect.atoms()]]
     e = phys.residual(prob.r) - mode_prediction(ms, C)
-    valid = (prob.M_scan > 0) & ~near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)[:, None]
-    disturbed, scan = sep.scan_disturbances(e, prob.t, f_c=prob.f_c, valid=valid, alpha=push_alpha)
-    info, em = {**previous.info, **scan}, previous.em
+    near = near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)
+    disturbed, found = scan(prob, e, friction_band(phys.coefficients(), phys.ctx), push_alpha=push_alpha, exclude=near)
+    info, em = {**previous.info, **found}, previous.em
     if method == "auto" and disturbed.any():
         em = run_learner(prob, max(2, em_modes), max_points=em_points, seed=seed, previous=em)
-        disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=scan["peaks"], strong=em_gate_peak)
+        disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=found["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)
 
@@ -429,8 +484,8 @@ def confirm_pushes(prob: Problem, phys: PhysicsFit, previous: Separation, near: 
     (the modes' own bodies in it) still shows it: a stretch that one mode's point-mass payload
     left unexplained but the mode's body explains was not a push. ``near`` (T,) bool: samples
     within a filter memory of a mode switch (left out of the scan)."""
-    valid = (prob.M_scan > 0) & ~near[:, None]
-    flagged, scan = sep.scan_disturbances(phys.residual(prob.r), prob.t, f_c=prob.f_c, valid=valid, alpha=push_alpha)
+    flagged, _ = scan(prob, phys.residual(prob.r), friction_band(phys.coefficients(), phys.ctx), push_alpha=push_alpha,
+                      exclude=near)
     kept = np.zeros_like(previous.disturbed)
     for a, b in sep.runs(previous.disturbed):
         kept[a:b] = flagged[a:b].any()
