@@ -268,6 +268,8 @@ class Diagnoser(BaseEstimator):
         laps("separate_s")
         _stage("selecting effects")
         phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
+        lib, (phys, selector, dropped, rb_ev) = self._hold_undetermined_com(prob, lib, use, start, init,
+                                                                             (phys, selector, dropped, rb_ev))
         laps("select_s")
         ms, pushes = self._mode_switch(prob, phys, pushes, laps)
         if ms is not None:
@@ -298,6 +300,27 @@ class Diagnoser(BaseEstimator):
                 "reidentification": reid, "coupling_search": coupling_ev, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
                                                       for e, p in dropped]}
         return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
+
+    def _hold_undetermined_com(self, prob, lib, use, start, init, selected):
+        """Where the log's poses do not determine a chosen payload's centre of mass along some
+        direction (:func:`.fitting.unresolved_com` given the payload's mass alone: one held pose
+        determines it across gravity only), the centre is held on the line through the link origin along it and the effects
+        are chosen again: left free there, the first moment takes whatever the few samples that
+        tilt the payload (a push's edges) say, and its torque is then explained by look-alikes
+        (a spring, an encoder offset). ``selected``: what :meth:`_select` returned; returned
+        unchanged (with ``lib``) when nothing is undetermined."""
+        from .fitting import unresolved_com
+
+        phys = selected[0]
+        ctx = lib.ctx
+        for e in phys.chosen:
+            if e.name == "payload" and e.index not in ctx.payload_held and phys.coefficients().get(e.atoms()[0], 0) > 0:
+                dirs = [v for v, _ in unresolved_com(phys, e, given_others=False)]
+                ctx = ctx.with_payload_held(e.index, np.array(dirs)) if dirs else ctx
+        if ctx is lib.ctx:
+            return lib, selected
+        lib = st.fit_library(prob, ctx, use, relinearise=2, init=init)
+        return lib, self._select(prob, lib, use, start)
 
     def _couplings(self, prob, init):
         """Coupled transmissions (``coupling``), searched first when the effects include them, on
