@@ -302,16 +302,18 @@ class Diagnoser(BaseEstimator):
         return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
 
     def _hold_undetermined_com(self, prob, lib, use, start, init, selected):
-        """Where the log's poses do not determine a chosen payload's centre of mass along some
-        direction (:func:`.fitting.unresolved_com` given the payload's mass alone: one held pose
-        determines it across gravity only), the centre is held on the line through the link origin along it and the effects
-        are chosen again: left free there, the first moment takes whatever the few samples that
-        tilt the payload (a push's edges) say, and its torque is then explained by look-alikes
-        (a spring, an encoder offset). ``selected``: what :meth:`_select` returned; returned
-        unchanged (with ``lib``) when nothing is undetermined."""
+        """On a log whose every joint holds still (:func:`.stages.still_joints`: the torques are
+        statics), a payload's centre of mass along gravity has no torque to show, whatever the
+        log: where :func:`.fitting.unresolved_com` (given the payload's mass alone) leaves such a
+        direction, the centre is held on the line through the link origin and the effects are
+        chosen again. Left free, the first moment there takes whatever the few samples a push
+        tilts say, and look-alikes (a spring, an encoder offset) then take its torque.
+        ``selected``: what :meth:`_select` returned; returned unchanged (with ``lib``) otherwise."""
         from .fitting import unresolved_com
 
         phys = selected[0]
+        if len(st.still_joints(prob, use)) < prob.ctx.n:
+            return lib, selected
         ctx = lib.ctx
         for e in phys.chosen:
             if e.name == "payload" and e.index not in ctx.payload_held and phys.coefficients().get(e.atoms()[0], 0) > 0:
