@@ -70,6 +70,15 @@ def test_encoder_offset_linearises_rnea(setup):
     np.testing.assert_allclose(got, ref, atol=1e-8, rtol=1e-4)
 
 
+def _heavier_rnea(model, link, m, c, q, dq, ddq, ctx):
+    """(T, n) what a point mass ``m`` at ``c`` on ``link`` adds: Pinocchio's RNEA of the model whose
+    link inertia includes it, less the nominal torque."""
+    heavy = model.copy()
+    heavy.inertias[link + 1] = heavy.inertias[link + 1] + pin.Inertia(m, c, np.zeros((3, 3)))
+    data = heavy.createData()
+    return np.array([pin.rnea(heavy, data, q[i], dq[i], ddq[i]) for i in range(len(q))]) - ctx.tau_rbd
+
+
 def test_payload_columns_match_heavier_link(setup):
     """A point mass on link 6 (0-based) = the RNEA of a model whose link inertia includes it."""
     model, q, dq, ddq, ctx = setup
@@ -78,15 +87,31 @@ def test_payload_columns_match_heavier_link(setup):
     got = fx.Payload(link).torque({"mass": m, "com": c}, ctx)
     got2 = _apply(fx.Payload(link), ctx, {("pl", link, 0): m, ("pl", link, 1): m * c[0],
                                           ("pl", link, 2): m * c[1], ("pl", link, 3): m * c[2]})
-    heavy = model.copy()
-    heavy.inertias[link + 1] = heavy.inertias[link + 1] + pin.Inertia(m, c, np.zeros((3, 3)))
-    data = heavy.createData()
-    ref = np.array([pin.rnea(heavy, data, q[i], dq[i], ddq[i]) for i in range(len(q))]) - ctx.tau_rbd
+    ref = _heavier_rnea(model, link, m, c, q, dq, ddq, ctx)
     np.testing.assert_allclose(got, ref, atol=1e-9)
     np.testing.assert_allclose(got2, ref, atol=1e-9)
     p, _ = fx.Payload(link).params({("pl", link, 0): m, ("pl", link, 1): m * c[0], ("pl", link, 2): m * c[1],
                                      ("pl", link, 3): m * c[2]}, {})
     assert p["mass"] == pytest.approx(m) and np.allclose(p["com"], c)
+
+
+def test_a_held_payload_direction_has_no_first_moment(setup):
+    """With the centre of mass held on a line through the link origin (``payload_held``), the
+    columns are those of the point mass on that line (RNEA of the heavier model), whatever the
+    linearisation guess, and a first moment along the held direction moves no joint."""
+    model, q, dq, ddq, ctx = setup
+    link, m = 6, 0.9
+    v = np.array([0.3, -0.2, 0.93]) / np.linalg.norm([0.3, -0.2, 0.93])
+    guess = np.array([0.02, -0.01, 0.12])
+    held = ctx.with_payload_com(link, guess).with_payload_held(link, v[None, :])
+    c = guess - (guess @ v) * v
+    got = _apply(fx.Payload(link), held, {("pl", link, 0): m, ("pl", link, 1): m * c[0],
+                                           ("pl", link, 2): m * c[1], ("pl", link, 3): m * c[2]})
+    ref = _heavier_rnea(model, link, m, c, q, dq, ddq, ctx)
+    np.testing.assert_allclose(got, ref, atol=1e-9)
+    along = _apply(fx.Payload(link), held, {("pl", link, 0): 0.0, ("pl", link, 1): v[0], ("pl", link, 2): v[1],
+                                             ("pl", link, 3): v[2]})
+    np.testing.assert_allclose(along, 0.0, atol=1e-12)
 
 
 def test_smooth_sign_scale_tracks_noise():

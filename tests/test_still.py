@@ -45,7 +45,9 @@ def runs():
 # seed 1: a 2 s push on the shoulder and elbow, on which the library's unphysical masses once
 # made the whole rigid body look re-identified instead of the payload; seed 3: pushes held at the
 # pose that a switching fit once took for a second payload of 3.67 kg (a false mode switch)
-@pytest.fixture(scope="module", params=[0, 1, 3])
+# seed 5: the payload's centre along gravity, which one pose does not determine, was fitted at
+# 0.88 m from the few samples a push tilts, and a false spring and encoder offset took its torque
+@pytest.fixture(scope="module", params=[0, 1, 3, 5])
 def held(runs, tmp_path_factory, request):
     return _diagnosed(runs, tmp_path_factory, request.param)
 
@@ -78,8 +80,10 @@ def test_the_pushes_are_reported_where_they_were(held):
     for a, b in truth:
         found = [(s, e) for s, e in spans if s < b and e > a]
         assert found, (a, b, spans)
+        # the push found whole: its reported edges within a tenth of a second of the true ones
+        # (the force ramps on and off; a 0.38 s push of seed 5 is reported 0.04 s short each side)
         overlap = sum(min(e, b) - max(s, a) for s, e in found)
-        assert overlap > 0.8 * (b - a)
+        assert overlap > (b - a) - 0.2, (a, b, found)
     # nothing reported far from a push
     assert all(any(s < b + 0.3 and e > a - 0.3 for a, b in truth) for s, e in spans)
 

@@ -227,12 +227,13 @@ def torque_share(phys: PhysicsFit, e, coef: dict, torque_sd: np.ndarray) -> floa
 COM_UNRESOLVED = 0.02
 
 
-def unresolved_com(phys: PhysicsFit, e) -> list[tuple[np.ndarray, float]]:
+def unresolved_com(phys: PhysicsFit, e, *, given_others: bool = True) -> list[tuple[np.ndarray, float]]:
     """(unit direction (3,) in the link frame, standard deviation m) of each direction along
     which payload ``e``'s centre of mass is not determined (above :data:`COM_UNRESOLVED`).
 
     Directions: the eigenvectors of the first moments' weighted normal matrix given every other
-    chosen atom. Along each, the larger of two standard deviations: the normal matrix's (residual
+    chosen atom (``given_others``; else given the payload's mass alone: what the poses of the log
+    say about the payload itself, whatever else shares its columns). Along each, the larger of two standard deviations: the normal matrix's (residual
     variance over its eigenvalue, over the mass; infinite where the log holds no information, which
     a bootstrap cannot show, every replicate landing on the same arbitrary value) and the block
     bootstrap's. A log that holds one pose determines the mass and the centre across gravity, not
@@ -245,7 +246,7 @@ def unresolved_com(phys: PhysicsFit, e) -> list[tuple[np.ndarray, float]]:
     rss = g.yte.sum(0) - 2 * g.call[:, S] @ phys.coef + np.einsum("p,jpq,q->j", phys.coef, g.Gall[:, S][:, :, S],
                                                                       phys.coef)
     sigma2 = float(phys.w @ rss / max(g.nte.sum(), 1.0))
-    h, o = pos[1:], [k for k in range(len(S)) if k not in pos[1:]]
+    h, o = pos[1:], [k for k in range(len(S)) if k not in pos[1:]] if given_others else [pos[0]]
     H = G[np.ix_(h, h)] - G[np.ix_(h, o)] @ np.linalg.pinv(G[np.ix_(o, o)]) @ G[np.ix_(o, h)]
     lam, V = np.linalg.eigh(H)
     mb = phys.boot[:, pos[0]]

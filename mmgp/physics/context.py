@@ -111,7 +111,9 @@ class Context:
     own frame (inertia about the frame origin), as in Pinocchio.
     ``v_s``: (n,) smooth-sign velocity scale (rad/s).
     ``payload_com``: link index -> centre-of-mass guess (3,) m at which payload columns are
-    linearised (absent: the link origin). ``tau_load``: (T, n) load that load-dependent friction
+    linearised (absent: the link origin). ``payload_held``: link index -> (k, 3) orthonormal
+    directions (link frame) along which the payload's centre of mass is held at the link origin's
+    line (the log does not determine it there). ``tau_load``: (T, n) load that load-dependent friction
     scales with (N*m); None = the nominal torque. ``reach``: how far a link frame can be from the
     base (m; None: unknown), bounding where an attached mass can sit. ``pi0``: (10 n,) nominal
     inertial parameters in the regressor's order; ``base``: the base parameters this trajectory
@@ -130,6 +132,7 @@ class Context:
     joint_names: list[str]
     link_names: list[str]
     payload_com: dict = field(default_factory=dict)
+    payload_held: dict = field(default_factory=dict)
     tau_load: np.ndarray | None = None
     reach: float | None = None
     pi0: np.ndarray | None = None
@@ -153,6 +156,12 @@ class Context:
     def with_payload_com(self, link: int, com: np.ndarray) -> "Context":
         """A copy whose payload on ``link`` is linearised at ``com`` (3,) m."""
         return dataclasses.replace(self, payload_com={**self.payload_com, link: np.asarray(com, dtype=np.float64)})
+
+    def with_payload_held(self, link: int, directions: np.ndarray) -> "Context":
+        """A copy whose payload on ``link`` has no first moment along ``directions`` (k, 3)
+        (orthonormal rows, link frame)."""
+        return dataclasses.replace(self, payload_held={**self.payload_held,
+                                                       link: np.atleast_2d(np.asarray(directions, dtype=np.float64))})
 
     def with_load(self, tau_load: np.ndarray | None) -> "Context":
         """A copy whose load-dependent friction scales with ``tau_load`` (T, n) N*m."""

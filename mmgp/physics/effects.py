@@ -410,7 +410,11 @@ class Payload(Effect):
         return tuple(("pl", self.index, i) for i in range(4))
 
     def columns(self, ctx):
-        C = linearised_columns(ctx.link_regressor(self.index), ctx.payload_com.get(self.index, np.zeros(3)))
+        # along a held direction the first moment's columns are zero (its coefficient stays 0)
+        D = ctx.payload_held.get(self.index, np.zeros((0, 3)))
+        P = np.eye(3) - D.T @ D
+        C = linearised_columns(ctx.link_regressor(self.index), P @ ctx.payload_com.get(self.index, np.zeros(3)))
+        C[:, :, 1:4] = C[:, :, 1:4] @ P
         return [C[:, :, i] for i in range(4)]
 
     @property
