@@ -19,12 +19,14 @@ held-out error (benchmarks/bench_gp_speed.py). ``mmgp.gp.sparse.make_gp`` picks 
 """
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 import torch
 from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
-from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets, optimise_hyper
+from .hyper import Hyper, HyperProcedure, Standardiser, default_hyper, fit_hyper_subsets, optimise_hyper
 from .kernels import rbf_cross_kernel, rbf_kernel
 from ..threads import threads_for_rows
 from .linalg import DTYPE, GPNumericalError, gaussian_logpdf, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
@@ -71,6 +73,10 @@ class StandardisedRBFGP(BaseEstimator):
         self.shared_starts = shared_starts
         self.block_s = block_s
 
+    def _procedure(self) -> HyperProcedure:
+        """This GP's settings of the hyperparameter procedure."""
+        return HyperProcedure(**{f.name: getattr(self, f.name) for f in fields(HyperProcedure)})
+
     def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool, t: np.ndarray | None = None):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
         ``hyper_`` (given, default or optimised; by leave-block-out with times ``t`` (N,) s and
@@ -86,7 +92,8 @@ class StandardisedRBFGP(BaseEstimator):
         if optimise:
             if t is not None and np.shape(t) != (X.shape[0],):
                 raise ValueError(f"t must be (N,) = ({X.shape[0]},), got {np.shape(t)}")
-            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None, est=self, t=t)
+            init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None,
+                                                                procedure=self._procedure(), t=t)
         self.hyper_ = init
         self.lengthscale_ = self.hyper_.lengthscale * self.x_scaler_.scale_[None, :]
         self.noise_std_ = np.sqrt(self.hyper_.noise_var) * self.y_scaler_.scale_

@@ -289,35 +289,54 @@ def restart_from_best_output(parts: list[tuple[Hyper, float]],
     return out
 
 
-def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: bool, est,
+@dataclass(frozen=True)
+class HyperProcedure:
+    """The settings of :func:`fit_hyper_subsets`, as the RBF GPs' settings of the same names
+    (:class:`mmgp.gp.exact.StandardisedRBFGP`): subset sizes, L-BFGS iterations, the objective
+    ("loo" or "marginal"; leave-block-out of ``block_s`` seconds when times are given), ARD, the
+    noise floor, the subsets' seed, independent outputs, refinement rounds and shared starts."""
+
+    max_fit_points: int
+    coarse_fit_points: int
+    max_iter: int
+    objective: str
+    ard: bool
+    noise_floor: float
+    seed: int
+    independent_outputs: bool
+    refine_rounds: int
+    shared_starts: bool
+    block_s: float
+
+
+def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: bool, procedure: HyperProcedure,
                       t: np.ndarray | None = None) -> tuple[Hyper, float]:
     """ExactGP's hyperparameter procedure, shared with the scalable GP.
 
-    Xs (N, d), Ys (N, m) standardised; ``est`` supplies the settings (max_fit_points,
-    coarse_fit_points, max_iter, objective, ard, noise_floor, seed, independent_outputs,
-    refine_rounds, shared_starts, block_s). Cold starts (``warm`` False) climb on a small coarse
-    subset first, then refine on the fitting subset (in rounds, and from the best output's
-    optimum when ``shared_starts``). With sample times ``t`` (N,) s, increasing, and
-    ``est.block_s`` > 0, every subset is scored by leave-block-out on its own times
-    (:func:`mmgp.gp.objectives.leave_block_out`) instead of ``est.objective``.
+    Xs (N, d), Ys (N, m) standardised; ``procedure`` the settings. Cold starts (``warm`` False)
+    climb on a small coarse subset first, then refine on the fitting subset (in rounds, and from
+    the best output's optimum when ``shared_starts``). With sample times ``t`` (N,) s, increasing,
+    and ``block_s`` > 0, every subset is scored by leave-block-out on its own times
+    (:func:`mmgp.gp.objectives.leave_block_out`) instead of ``objective``.
     """
-    rng = np.random.default_rng(est.seed)
+    p = procedure
+    rng = np.random.default_rng(p.seed)
     N = Xs.shape[0]
     idx = np.arange(N)
-    if N > est.max_fit_points:
-        idx = np.sort(rng.choice(N, est.max_fit_points, replace=False))
-    block_s = float(getattr(est, "block_s", 0.0) or 0.0)
+    if N > p.max_fit_points:
+        idx = np.sort(rng.choice(N, p.max_fit_points, replace=False))
+    block_s = float(p.block_s or 0.0)
     objective = ((lambda rows: leave_block_out(np.asarray(t)[rows], block_s)) if t is not None and block_s > 0
-                 else (lambda rows: est.objective))
-    opts = dict(ard=est.ard, noise_floor=est.noise_floor, independent=bool(getattr(est, "independent_outputs", False)))
-    n_c = int(est.coarse_fit_points or 0)
-    max_iter, rounds = est.max_iter, 1
+                 else (lambda rows: p.objective))
+    opts = dict(ard=p.ard, noise_floor=p.noise_floor, independent=bool(p.independent_outputs))
+    n_c = int(p.coarse_fit_points or 0)
+    max_iter, rounds = p.max_iter, 1
     if not warm and n_c > 0 and len(idx) > 2 * n_c:
         coarse = np.sort(rng.choice(idx, n_c, replace=False))
-        init, _ = optimise_hyper(Xs[coarse], Ys[coarse], init, objective=objective(coarse), max_iter=est.max_iter,
+        init, _ = optimise_hyper(Xs[coarse], Ys[coarse], init, objective=objective(coarse), max_iter=p.max_iter,
                                  **opts)
-        max_iter, rounds = max(10, est.max_iter // 3), int(getattr(est, "refine_rounds", 1))
-        opts["shared_starts"] = bool(getattr(est, "shared_starts", False))
+        max_iter, rounds = max(10, p.max_iter // 3), int(p.refine_rounds)
+        opts["shared_starts"] = bool(p.shared_starts)
     return optimise_hyper(Xs[idx], Ys[idx], init, objective=objective(idx), max_iter=max_iter, rounds=rounds, **opts)
 
 
