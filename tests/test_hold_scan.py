@@ -45,7 +45,14 @@ def test_beyond_band_is_the_soft_threshold():
 
 
 def _problem(dq, v_s, t):
-    return SimpleNamespace(lowpass=lambda x: x, ctx=SimpleNamespace(dq=dq, v_s=v_s), t=t, f_c=None)
+    # no filter; each joint's Coulomb column tanh(dq / v_s) on its own joint, written out
+    def coulomb_columns(effects, ctx):
+        n = dq.shape[1]
+        A = np.zeros((len(t), n, n))
+        A[:, np.arange(n), np.arange(n)] = np.tanh(dq / v_s)
+        return [("sign", j) for j in range(n)], A
+
+    return SimpleNamespace(lowpass_atoms=coulomb_columns, ctx=SimpleNamespace(dq=dq, v_s=v_s), t=t, f_c=None)
 
 
 def test_band_bound_covers_the_true_coulomb_level_at_its_level():

@@ -268,8 +268,10 @@ class Diagnoser(BaseEstimator):
         laps("separate_s")
         _stage("selecting effects")
         phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
-        lib, (phys, selector, dropped, rb_ev) = self._hold_undetermined_com(prob, lib, use, start, init,
-                                                                             (phys, selector, dropped, rb_ev))
+        held = self._held_com_context(prob, phys, lib.ctx, use)
+        if held is not None:
+            lib = st.fit_library(prob, held, use, relinearise=2, init=init)
+            phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
         laps("select_s")
         ms, pushes = self._mode_switch(prob, phys, pushes, laps)
         if ms is not None:
@@ -301,28 +303,25 @@ class Diagnoser(BaseEstimator):
                                                       for e, p in dropped]}
         return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
 
-    def _hold_undetermined_com(self, prob, lib, use, start, init, selected):
+    @staticmethod
+    def _held_com_context(prob, phys, ctx, use):
         """On a log whose every joint holds still (:func:`.stages.still_joints`: the torques are
         statics), a payload's centre of mass along gravity has no torque to show, whatever the
-        log: where :func:`.fitting.unresolved_com` (given the payload's mass alone) leaves such a
-        direction, the centre is held on the line through the link origin and the effects are
-        chosen again. Left free, the first moment there takes whatever the few samples a push
-        tilts say, and look-alikes (a spring, an encoder offset) then take its torque.
-        ``selected``: what :meth:`_select` returned; returned unchanged (with ``lib``) otherwise."""
+        log: the context (the library's ``ctx`` with those directions held on the line through the
+        link origin) in which the effects are to be chosen again, where :func:`.fitting.unresolved_com`
+        (given the payload's mass alone) leaves such a direction; else None. Left free, the
+        first moment there takes whatever the few samples a push tilts say, and look-alikes (a
+        spring, an encoder offset) then take its torque."""
         from .fitting import unresolved_com
 
-        phys = selected[0]
         if len(st.still_joints(prob, use)) < prob.ctx.n:
-            return lib, selected
-        ctx = lib.ctx
+            return None
+        base, coef = ctx, phys.coefficients()
         for e in phys.chosen:
-            if e.name == "payload" and e.index not in ctx.payload_held and phys.coefficients().get(e.atoms()[0], 0) > 0:
+            if e.name == "payload" and e.index not in ctx.payload_held and coef.get(e.atoms()[0], 0) > 0:
                 dirs = [v for v, _ in unresolved_com(phys, e, given_others=False)]
                 ctx = ctx.with_payload_held(e.index, np.array(dirs)) if dirs else ctx
-        if ctx is lib.ctx:
-            return lib, selected
-        lib = st.fit_library(prob, ctx, use, relinearise=2, init=init)
-        return lib, self._select(prob, lib, use, start)
+        return None if ctx is base else ctx
 
     def _couplings(self, prob, init):
         """Coupled transmissions (``coupling``), searched first when the effects include them, on

@@ -57,7 +57,11 @@ class Problem:
 
     def atoms(self, ctx: Context) -> tuple[list, np.ndarray]:
         """Atom keys and low-passed columns (T, n, P) of the library in ``ctx``."""
-        keys, A = build_atoms(self.library, ctx)
+        return self.lowpass_atoms(self.library, ctx)
+
+    def lowpass_atoms(self, effects, ctx: Context) -> tuple[list, np.ndarray]:
+        """Atom keys and low-passed columns (T, n, P) of ``effects`` in ``ctx``."""
+        keys, A = build_atoms(effects, ctx)
         return keys, self.lowpass(A)
 
 
@@ -262,10 +266,14 @@ def band_uncertainty(prob: Problem, e: np.ndarray, valid: np.ndarray, level: flo
     way only cannot tell friction from an offset: its bound is infinite."""
     from scipy.stats import norm
 
-    sign = prob.lowpass(np.tanh(prob.ctx.dq / np.asarray(prob.ctx.v_s)[None, :]))
+    from ..physics.effects import CoulombFriction
+
+    n = e.shape[1]
+    _, A = prob.lowpass_atoms([CoulombFriction(j) for j in range(n)], prob.ctx)
+    sign = A[:, np.arange(n), np.arange(n)]          # (T, n) each joint's own Coulomb column
     dur = float(prob.t[-1] - prob.t[0]) if len(prob.t) > 1 else 1.0
-    out = np.full(e.shape[1], np.inf)
-    for j in range(e.shape[1]):
+    out = np.full(n, np.inf)
+    for j in range(n):
         m = valid[:, j]
         if m.sum() < 3:
             continue
