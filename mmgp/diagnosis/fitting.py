@@ -233,8 +233,9 @@ def unresolved_com(phys: PhysicsFit, e, *, given_others: bool = True) -> list[tu
 
     Directions: the eigenvectors of the first moments' weighted normal matrix given every other
     chosen atom (``given_others``; else given the payload's mass alone: what the poses of the log
-    say about the payload itself, whatever else shares its columns). Along each, the larger of two standard deviations: the normal matrix's (residual
-    variance over its eigenvalue, over the mass; infinite where the log holds no information, which
+    say about the payload itself, whatever else shares its columns). Along each, the larger of
+    two standard deviations: the normal matrix's (residual variance over its eigenvalue, over the
+    mass; infinite where the log holds no information, which
     a bootstrap cannot show, every replicate landing on the same arbitrary value) and the block
     bootstrap's. A log that holds one pose determines the mass and the centre across gravity, not
     along it (a vertical force has no moment about a point above or below it)."""

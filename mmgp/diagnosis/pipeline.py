@@ -318,7 +318,8 @@ class Diagnoser(BaseEstimator):
             return None
         base, coef = ctx, phys.coefficients()
         for e in phys.chosen:
-            if e.name == "payload" and e.index not in ctx.payload_held and coef.get(e.atoms()[0], 0) > 0:
+            held_already = e.index in ctx.payload_held
+            if e.name == "payload" and not held_already and coef.get(e.atoms()[0], 0) > 0:
                 dirs = [v for v, _ in unresolved_com(phys, e, given_others=False)]
                 ctx = ctx.with_payload_held(e.index, np.array(dirs)) if dirs else ctx
         return None if ctx is base else ctx

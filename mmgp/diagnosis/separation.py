@@ -148,8 +148,8 @@ def scan_disturbances(e: np.ndarray, t: np.ndarray, *, f_c: float | None = None,
     widened to where the statistic returns to its 99% noise band. ``valid`` (T, n) bool: joint
     equations to use; ``reference`` (T, n) bool: the equations the noise level is taken on
     (default ``valid``); ``band`` (T, n) N*m >= 0: a residual within it is no evidence (a stuck
-    joint's friction band; :func:`beyond_band`). Returns the mask (T,) and {"threshold", "peaks" (per span, in units of the
-    threshold), "effective_samples", "spans" (s)}.
+    joint's friction band; :func:`beyond_band`). Returns the mask (T,) and {"threshold", "peaks"
+    (per span, in units of the threshold), "effective_samples", "spans" (s)}.
     """
     from scipy.stats import chi2
 
