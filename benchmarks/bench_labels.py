@@ -24,6 +24,7 @@ Sets of logs (``--sets``):
   ``issue29b``: a second draw of its levers (ISSUE29B_*, 2026-11-28), with the same arms.
   ``issue29c``: a third draw of its levers (ISSUE29C_*, 2026-11-28), with the same arms.
   ``issue29d``: a fourth draw (ISSUE29D_*, 2026-11-28, fourth session), with the same arms.
+  ``issue29e``: a fifth draw (ISSUE29E_*, 2026-11-29, tenth session), levers and fresh arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -130,6 +131,18 @@ ISSUE29C_SOURCE_FREE = (12575917, 10391766, 13030341, 16570667)
 ISSUE29D_SOURCE = (13035178, 15862300, 18456160, 11145394, 16227646, 16252997, 10309244, 10294808, 13818546,
                    12293969, 11457173, 12683936)
 ISSUE29D_SOURCE_FREE = (12748861, 15816278, 13761358, 17861578)
+# A fifth held-out draw (2026-11-29, tenth session, the system random source `secrets`),
+# committed before anything was scored on it, with fresh arms: the first draw's arms have been
+# scored and panda15643352 looked at. Arms from one drawn pool by their specs alone (max_samples
+# 8,000), in pool order: per robot the first with pushes and two payload modes, a fixed payload,
+# none; the next two pool seeds are the push-free holds (Panda, UR5).
+ISSUE29E_SOURCE = (11133556, 17984552, 12291773, 13145730, 14638357, 14775563, 18811123, 18424176, 11361017,
+                   12429198, 13882048, 10129974)
+ISSUE29E_SOURCE_FREE = (13257179, 14337105, 18821550, 12745418)
+ISSUE29E_PANDA = (11812821, 13737537, 14950848)
+ISSUE29E_UR5 = (12188530, 12192978, 15903670)
+ISSUE29E_HOLDS_PANDA = (16027729,)
+ISSUE29E_HOLDS_UR5 = (17299723,)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -517,6 +530,11 @@ def main(argv=None) -> int:
                   + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
                   + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
                   + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
+    if "issue29e" in sets:
+        cases += (family_cases(ISSUE29E_SOURCE, "source", a.cache) + family_cases(ISSUE29E_SOURCE_FREE, "source-free", a.cache)
+                  + family_cases(ISSUE29E_PANDA, "panda", a.cache) + family_cases(ISSUE29E_UR5, "ur5", a.cache)
+                  + family_cases(ISSUE29E_HOLDS_PANDA, "holds", a.cache)
+                  + family_cases(ISSUE29E_HOLDS_UR5, "holds-ur5", a.cache))
     if "validation" in sets:
         cases += validation_cases()
     if only:
