@@ -287,3 +287,16 @@ def test_summary_says_why_the_flags_differ_from_the_last_sweep():
     assert "487" in _flags_note(averaged) and "scan's (3)" in _flags_note(averaged)
     same = {"likelihood_trace": trace, "disturbance": {"n_disturbed": 487, "abstained": False}}
     assert _flags_note(same) == "" and _flags_note({"likelihood_trace": [], "disturbance": {"n_disturbed": 0}}) == ""
+
+
+def test_summary_names_the_sweep_kept_when_the_sweeps_cycle():
+    from mmgp.cli.train import _flags_note
+
+    trace = [{"n_disturbed": n, "log_marginal": lm} for n, lm in [(379, 85603.6), (7, 86375.6), (2507, 46996.8),
+                                                                  (432, 23090.0)]]
+    rep = {"likelihood_trace": trace, "labels_from_sweep": 1,
+           "disturbance": {"n_disturbed": 0, "abstained": True, "n_by_scan": 0}}
+    note = _flags_note(rep)
+    assert "did not converge" in note and "sweep 1's" in note and "86375.6" in note and "23090.0" in note
+    # what follows is about the kept sweep (7 in the disturbance state), not the last (432)
+    assert "held 7 samples" in note and "none is flagged" in note

@@ -66,14 +66,24 @@ def _flags_note(rep: dict) -> str:
     labels (averaged sweeps, short pushes dropped, the scan's added; none when abstaining)."""
     trace = rep.get("likelihood_trace") or []
     dist = rep["disturbance"]
+    kept = rep.get("labels_from_sweep")
+    if kept is not None:
+        best, last = trace[kept], trace[-1]
+        cycle = (f" The sweeps did not converge (the last held {last['n_disturbed']} samples in the disturbance "
+                 f"state, log marginal {last['log_marginal']:.1f}); the labels are sweep {kept}'s, whose log "
+                 f"marginal {best['log_marginal']:.1f} is the highest of all sweeps.")
+        trace = trace[:kept + 1]
+    else:
+        cycle = ""
     if not trace or trace[-1]["n_disturbed"] == dist["n_disturbed"]:
-        return ""
+        return cycle
     if dist.get("abstained"):
-        return (f" The sweeps held {trace[-1]['n_disturbed']} samples in the disturbance state, but it did not raise "
-                "the evidence by more than its price (a log without pushes), so none is flagged.")
-    return (f" The last sweep held {trace[-1]['n_disturbed']} in the disturbance state; the flags are the "
-            "averaged labels of the last sweeps, without pushes shorter than min_push_s, plus the "
-            f"sustained-offset scan's ({dist.get('n_by_scan', 0)}).")
+        return cycle + (f" The sweeps held {trace[-1]['n_disturbed']} samples in the disturbance state, but it did not "
+                        "raise the evidence by more than its price (a log without pushes), so none is flagged.")
+    which, labels = ("kept", "its labels") if kept is not None else ("last", "the averaged labels of the last sweeps")
+    return cycle + (f" The {which} sweep held {trace[-1]['n_disturbed']} in the disturbance state; the flags are "
+                    f"{labels}, without pushes shorter than min_push_s, plus the sustained-offset scan's "
+                    f"({dist.get('n_by_scan', 0)}).")
 
 
 def _dissipation(rep: dict) -> str:

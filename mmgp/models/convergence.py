@@ -31,7 +31,9 @@ class ConvergenceMonitor:
     of ``average_last`` more sweeps are averaged.
 
     State: ``trace`` (list of SweepRecord), ``converged``, ``averaging`` (the sweeps now run are
-    averaged; no hyperparameter refits then), ``posterior()`` (T, S) once done.
+    averaged; no hyperparameter refits then), ``posterior()`` (T, S) once done, ``best`` the sweep
+    with the highest log marginal likelihood so far (its record, marginals and what the caller
+    gave to :meth:`update` with it): an EM that does not converge ends there (:meth:`fall_back`).
     """
 
     def __init__(self, *, min_sweeps: int, max_sweeps: int, tol_changed: float, patience: int,
@@ -47,10 +49,15 @@ class ConvergenceMonitor:
         self._quiet = False
         self._post_sum: np.ndarray | None = None
         self._n_avg = 0
+        self.best: tuple[SweepRecord, np.ndarray, object] | None = None
+        self.fell_back = False
 
-    def update(self, rec: SweepRecord, probs: np.ndarray) -> bool:
-        """Record one sweep and its marginals (T, S); True when the EM should stop."""
+    def update(self, rec: SweepRecord, probs: np.ndarray, state: object = None) -> bool:
+        """Record one sweep, its marginals (T, S) and the caller's ``state`` after it (kept while
+        it is the best sweep); True when the EM should stop."""
         self.trace.append(rec)
+        if self.best is None or rec.log_marginal > self.best[0].log_marginal:
+            self.best = (rec, probs, state)
         if self._post_sum is None:
             self._post_sum = np.zeros_like(probs)
         if self.averaging:
@@ -82,6 +89,15 @@ class ConvergenceMonitor:
     def abandon(self, probs: np.ndarray) -> None:
         """Stop now without converging; the posterior is the last sweep's marginals (T, S)."""
         self._post_sum, self._n_avg, self.averaging = np.array(probs, copy=True), 1, True
+
+    def fall_back(self) -> object:
+        """Where the sweeps did not converge (they cycle between labellings, each M-step undoing the
+        last), end at the sweep whose parameters explain the log best, its log marginal
+        likelihood the highest of all sweeps (what EM climbs), rather than averaging the cycle's
+        last sweeps: the posterior becomes that sweep's marginals. Returns the state given with it."""
+        rec, probs, state = self.best
+        self._post_sum, self._n_avg, self.fell_back = np.array(probs, copy=True), 1, True
+        return state
 
     def posterior(self) -> np.ndarray:
         """The averaged marginals (T, S) of the sweeps after convergence."""

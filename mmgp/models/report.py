@@ -63,6 +63,8 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
                               "changed": r.changed, "n_disturbed": r.n_disturbed, "mode_sizes": r.mode_sizes,
                               "seconds": r.seconds} for r in sem.trace_],
         "converged": bool(sem.converged_),
+        # the sweep whose labels were kept where the sweeps did not converge (None: averaged)
+        "labels_from_sweep": getattr(sem, "labels_sweep_", None),
         "n_sweeps": int(sem.n_sweeps_),
         "timings": timings,
     }

@@ -53,6 +53,7 @@ sampling), :mod:`.convergence` (when to stop); this module runs the sweeps and k
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from typing import Callable, Sequence
@@ -85,11 +86,9 @@ class MultimodalSEM:
     estep : "mpm" (default: deterministic, the seed plays no part), "ffbs" or "gibbs" (stochastic:
         the labels depend on ``seed``; see benchmarks/bench_labels.py).
     stay_prob : fixed p(k_t = k_{t-1}); None learns it (Beta prior, mean 0.95).
-    max_sweeps, min_sweeps : sweep limits; convergence when, over the last ``patience`` sweeps,
-        the sampled labels change in fewer than ``tol_changed`` of the samples on average and
-        either the mean log joint stops rising compared with the ``patience`` sweeps before or
-        fewer than a fifth of ``tol_changed`` change.
-    average_last : sweeps after convergence whose posterior marginals are averaged.
+    max_sweeps, min_sweeps, tol_changed, patience, average_last : when the sweeps stop and how many
+        are averaged after convergence (:class:`.convergence.ConvergenceMonitor`); where they do
+        not converge, the labels are the sweep's of the highest log marginal (``labels_sweep_``).
     max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
         (evenly spaced; the others are predicted out of sample): each sweep costs
         O(max_support^2 * T) per joint.
@@ -219,7 +218,7 @@ class MultimodalSEM:
         self.stay_prob_ = 1.0
         self.p_enter_ = self.p_leave_ = 0.0
         self.trace_, self.converged_, self.n_sweeps_, self.last_sweep_ = [], True, 0, None
-        self.abandoned_ = False
+        self.abandoned_, self.labels_sweep_ = False, None
         self.longest_stretch_s_ = longest_runs_s(self.labels_, fitter.t_axis, 1, starts)
         self.log_marginal_ = float("nan")
         self.disturbance_gain_ = 0.0
@@ -283,7 +282,7 @@ class MultimodalSEM:
                 self.progress(rec)
             else:  # nobody takes the sweeps: a stage report each (the diagnosis's learner)
                 report(f"EM sweep {sweep}: {changed:.1%} of the labels changed ({rec.seconds:.1f} s)")
-            if monitor.update(rec, step.probs):
+            if monitor.update(rec, step.probs, (copy.deepcopy(params), self.last_sweep_)):
                 break
             fleeting = sweep + 1 >= self.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
             short = short + 1 if fleeting else 0
@@ -292,6 +291,8 @@ class MultimodalSEM:
                 self.abandoned_ = True
                 break
             sweep += 1
+        if not monitor.converged and not self.abandoned_:
+            params, self.last_sweep_ = monitor.fall_back()
         self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len, scan_len)
         self.n_sweeps_ = sweep
         timings["total_s"] = time.perf_counter() - t0
@@ -446,7 +447,9 @@ class MultimodalSEM:
         self.p_leave_ = float(params.p_leave) if self.disturbance else 0.0
         self.trace_ = monitor.trace
         self.converged_ = monitor.converged
-        self.log_marginal_ = monitor.trace[-1].log_marginal
+        best = monitor.best[0] if monitor.fell_back else None
+        self.labels_sweep_ = None if best is None else best.sweep
+        self.log_marginal_ = (best or monitor.trace[-1]).log_marginal
         self._final_gps(fitter, order, params.hypers, params.stuck)
 
     def _scan_sustained(self, fitter: ModeFitter, modes: np.ndarray, p_dist: np.ndarray, starts,
