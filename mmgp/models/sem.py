@@ -87,8 +87,9 @@ class MultimodalSEM:
         the labels depend on ``seed``; see benchmarks/bench_labels.py).
     stay_prob : fixed p(k_t = k_{t-1}); None learns it (Beta prior, mean 0.95).
     max_sweeps, min_sweeps, tol_changed, patience, average_last : when the sweeps stop and how many
-        are averaged after convergence (:class:`.convergence.ConvergenceMonitor`); where they do
-        not converge, the labels are the sweep's of the highest log marginal (``labels_sweep_``).
+        are averaged after convergence (:class:`.convergence.ConvergenceMonitor`).
+    unconverged : the labels where the sweeps stop unconverged: "best", the sweep's of the highest
+        log marginal (a chain that cycles; ``labels_sweep_``); "average", the last sweeps' (a budget).
     max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
         (evenly spaced; the others are predicted out of sample): each sweep costs
         O(max_support^2 * T) per joint.
@@ -151,14 +152,12 @@ class MultimodalSEM:
                  push_prior_n: float = 3.0, push_floor_z: float = 5.0, min_push_s: float = 0.15,
                  push_scan_s: float = 0.2, push_scan_z: float = 6.0,
                  rest_band: bool = True, start_trim: Sequence[float] = (0.8, 0.6),
-                 start_z: float = 3.0, abstain: bool = True, gp_kwargs: dict | None = None, seed: int = 0,
-                 progress: Callable[[SweepRecord], None] | None = None):
-        if n_modes < 1:
-            raise ValueError("n_modes must be >= 1")
-        if estep not in ("mpm", "ffbs", "gibbs"):
-            raise ValueError(f"estep must be 'mpm', 'ffbs' or 'gibbs', got {estep!r}")
-        # Every setting is stored unchanged under its own name, in one statement, so the stored
-        # list cannot drift from the signature (MultimodalGP passes its own settings through).
+                 start_z: float = 3.0, abstain: bool = True, unconverged: str = "best",
+                 gp_kwargs: dict | None = None, seed: int = 0, progress: Callable[[SweepRecord], None] | None = None):
+        if n_modes < 1 or estep not in ("mpm", "ffbs", "gibbs") or unconverged not in ("best", "average"):
+            raise ValueError("expected n_modes >= 1, estep 'mpm', 'ffbs' or 'gibbs', unconverged 'best' or "
+                             f"'average'; got {n_modes!r}, {estep!r}, {unconverged!r}")
+        # Every setting stored under its own name in one statement: the list cannot drift from the signature.
         settings = {k: v for k, v in locals().items() if k != "self"}
         vars(self).update(settings, gp_kwargs=gp_kwargs or {})
 
@@ -291,7 +290,7 @@ class MultimodalSEM:
                 self.abandoned_ = True
                 break
             sweep += 1
-        if not monitor.converged and not self.abandoned_:
+        if not monitor.converged and not self.abandoned_ and self.unconverged == "best":
             params, self.last_sweep_ = monitor.fall_back()
         self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len, scan_len)
         self.n_sweeps_ = sweep
