@@ -281,6 +281,11 @@ class ModeFitter:
                 branch = [branch[0] + plus[idx, j] @ coef[j], branch[1] + minus[idx, j] @ coef[j]]
             centre[idx, j] = 0.5 * (branch[0] + branch[1])
             half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
+            if coef is not None and self.dry_cols:
+                # the band is the mean's dry friction alone: near rest the GP learns to cancel the
+                # basis's friction (noise turns the smooth sign there), so its branches at rest
+                # hold the opposite step and the band collapses (benchmarks/README.md, tenth session)
+                half[idx, j] = 0.5 * np.abs((plus[idx, j] - minus[idx, j]) @ coef[j])
             bvar[idx, j] = 0.5 * (bv[0] + bv[1])
         return centre, half, bvar
 
