@@ -143,6 +143,18 @@ ISSUE29E_PANDA = (11812821, 13737537, 14950848)
 ISSUE29E_UR5 = (12188530, 12192978, 15903670)
 ISSUE29E_HOLDS_PANDA = (16027729,)
 ISSUE29E_HOLDS_UR5 = (17299723,)
+# Each draw of issue 29 as (levers, push-free levers, Panda arms, UR5 arms, push-free holds Panda,
+# push-free holds UR5): the second to fourth draws reuse the first draw's arms.
+_ISSUE29_ARMS = (ISSUE29_PANDA, ISSUE29_UR5, ISSUE29_HOLDS_PANDA, ISSUE29_HOLDS_UR5)
+ISSUE29_DRAWS = {
+    "issue29": (ISSUE29_SOURCE, ISSUE29_SOURCE_FREE, *_ISSUE29_ARMS),
+    "issue29b": (ISSUE29B_SOURCE, ISSUE29B_SOURCE_FREE, *_ISSUE29_ARMS),
+    "issue29c": (ISSUE29C_SOURCE, ISSUE29C_SOURCE_FREE, *_ISSUE29_ARMS),
+    "issue29d": (ISSUE29D_SOURCE, ISSUE29D_SOURCE_FREE, *_ISSUE29_ARMS),
+    "issue29e": (ISSUE29E_SOURCE, ISSUE29E_SOURCE_FREE, ISSUE29E_PANDA, ISSUE29E_UR5, ISSUE29E_HOLDS_PANDA,
+                 ISSUE29E_HOLDS_UR5),
+}
+_ISSUE29_KINDS = ("source", "source-free", "panda", "ur5", "holds", "holds-ur5")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -181,7 +193,9 @@ def replica_cases() -> list[Case]:
     return [_case_from_labels("replica", log, lab, 1)]
 
 
-def family_cases(seeds, kind: str, cache: Path) -> list[Case]:
+def family_cases(seeds, kind: str, cache: Path, only: set[str] | frozenset = frozenset()) -> list[Case]:
+    """The family's logs of ``seeds`` (recorded into ``cache`` unless there), as cases; with
+    ``only``, just the cases of those names (the others are not recorded)."""
     from mmgp.sim.family import draw, push_free_holds, record, write_scenario
 
     out = []
@@ -193,11 +207,13 @@ def family_cases(seeds, kind: str, cache: Path) -> list[Case]:
             spec = dataclasses.replace(draw(seed, "source"), pushes=[])
         else:
             spec = draw(seed, kind, max_samples=cap)
+        name = kind if kind in ("lever", "holds", "holds-ur5", "source", "source-free") else spec.robot
+        if only and f"{name}{seed}" not in only:
+            continue
         stem = f"{kind}{seed}"
         log, lab = cache / f"{stem}.parquet", cache / f"{stem}.labels.parquet"
         if not (log.is_file() and lab.is_file()):
             write_scenario(record(spec), cache, stem)
-        name = kind if kind in ("lever", "holds", "holds-ur5", "source", "source-free") else spec.robot
         out.append(_case_from_labels(f"{name}{seed}", log, lab,
                                      len(spec.joint_names), spec={k: spec.to_dict()[k] for k in
                                                                   ("robot", "rate_hz", "controller", "friction", "lever")}))
@@ -510,31 +526,9 @@ def main(argv=None) -> int:
         cases += family_cases(HOLDS_HELDOUT, "holds", a.cache)
     if "source-tuning" in sets:
         cases += family_cases(SOURCE_TUNING, "source", a.cache) + family_cases(SOURCE_FREE_TUNING, "source-free", a.cache)
-    if "issue29" in sets:
-        cases += (family_cases(ISSUE29_SOURCE, "source", a.cache) + family_cases(ISSUE29_SOURCE_FREE, "source-free", a.cache)
-                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
-                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
-                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
-    if "issue29b" in sets:
-        cases += (family_cases(ISSUE29B_SOURCE, "source", a.cache) + family_cases(ISSUE29B_SOURCE_FREE, "source-free", a.cache)
-                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
-                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
-                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
-    if "issue29c" in sets:
-        cases += (family_cases(ISSUE29C_SOURCE, "source", a.cache) + family_cases(ISSUE29C_SOURCE_FREE, "source-free", a.cache)
-                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
-                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
-                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
-    if "issue29d" in sets:
-        cases += (family_cases(ISSUE29D_SOURCE, "source", a.cache) + family_cases(ISSUE29D_SOURCE_FREE, "source-free", a.cache)
-                  + family_cases(ISSUE29_PANDA, "panda", a.cache) + family_cases(ISSUE29_UR5, "ur5", a.cache)
-                  + family_cases(ISSUE29_HOLDS_PANDA, "holds", a.cache)
-                  + family_cases(ISSUE29_HOLDS_UR5, "holds-ur5", a.cache))
-    if "issue29e" in sets:
-        cases += (family_cases(ISSUE29E_SOURCE, "source", a.cache) + family_cases(ISSUE29E_SOURCE_FREE, "source-free", a.cache)
-                  + family_cases(ISSUE29E_PANDA, "panda", a.cache) + family_cases(ISSUE29E_UR5, "ur5", a.cache)
-                  + family_cases(ISSUE29E_HOLDS_PANDA, "holds", a.cache)
-                  + family_cases(ISSUE29E_HOLDS_UR5, "holds-ur5", a.cache))
+    for name, draw_seeds in ISSUE29_DRAWS.items():
+        if name in sets:
+            cases += [c for seeds, kind in zip(draw_seeds, _ISSUE29_KINDS) for c in family_cases(seeds, kind, a.cache, only)]
     if "validation" in sets:
         cases += validation_cases()
     if only:
