@@ -25,6 +25,7 @@ Sets of logs (``--sets``):
   ``issue29c``: a third draw of its levers (ISSUE29C_*, 2026-11-28), with the same arms.
   ``issue29d``: a fourth draw (ISSUE29D_*, 2026-11-28, fourth session), with the same arms.
   ``issue29e``: a fifth draw (ISSUE29E_*, 2026-11-29, tenth session), levers and fresh arms.
+  ``issue29f``: a sixth draw (ISSUE29F_*, 2026-11-29, eleventh session), levers and fresh arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -143,6 +144,16 @@ ISSUE29E_PANDA = (11812821, 13737537, 14950848)
 ISSUE29E_UR5 = (12188530, 12192978, 15903670)
 ISSUE29E_HOLDS_PANDA = (16027729,)
 ISSUE29E_HOLDS_UR5 = (17299723,)
+# A sixth held-out draw (2026-11-29, eleventh session, `secrets`), committed before anything was
+# scored on it: the fifth draw was scored once and its holds arms looked at since. Arms as the
+# fifth's (a fresh pool of 60 seeds by spec alone, in pool order; the next two pool seeds the holds).
+ISSUE29F_SOURCE = (11512378, 18779806, 11829982, 11619991, 16429735, 18001624, 16772495, 12509470, 15718826,
+                   11147141, 15433605, 18460447)
+ISSUE29F_SOURCE_FREE = (15668065, 18452991, 12139102, 14318771)
+ISSUE29F_PANDA = (15447400, 13605847, 17161524)
+ISSUE29F_UR5 = (14597668, 12331711, 10650099)
+ISSUE29F_HOLDS_PANDA = (14183104,)
+ISSUE29F_HOLDS_UR5 = (18323121,)
 # Each draw of issue 29 as (levers, push-free levers, Panda arms, UR5 arms, push-free holds Panda,
 # push-free holds UR5): the second to fourth draws reuse the first draw's arms.
 _ISSUE29_ARMS = (ISSUE29_PANDA, ISSUE29_UR5, ISSUE29_HOLDS_PANDA, ISSUE29_HOLDS_UR5)
@@ -153,6 +164,8 @@ ISSUE29_DRAWS = {
     "issue29d": (ISSUE29D_SOURCE, ISSUE29D_SOURCE_FREE, *_ISSUE29_ARMS),
     "issue29e": (ISSUE29E_SOURCE, ISSUE29E_SOURCE_FREE, ISSUE29E_PANDA, ISSUE29E_UR5, ISSUE29E_HOLDS_PANDA,
                  ISSUE29E_HOLDS_UR5),
+    "issue29f": (ISSUE29F_SOURCE, ISSUE29F_SOURCE_FREE, ISSUE29F_PANDA, ISSUE29F_UR5, ISSUE29F_HOLDS_PANDA,
+                 ISSUE29F_HOLDS_UR5),
 }
 _ISSUE29_KINDS = ("source", "source-free", "panda", "ur5", "holds", "holds-ur5")
 
