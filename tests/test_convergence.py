@@ -14,12 +14,12 @@ def _monitor(**kw):
                                  "average_last": 2, **kw})
 
 
-def _feed(monitor, marginals, changed, rng):
+def _feed(monitor, marginals, changed, rng, refits=()):
     probs = []
     for i, (lm, ch) in enumerate(zip(marginals, changed)):
         p = rng.dirichlet(np.ones(2), size=5)
         probs.append(p)
-        stop = monitor.update(SweepRecord(i, lm, lm, ch, 0, [5], 0.0), p, state=("state", i))
+        stop = monitor.update(SweepRecord(i, lm, lm, ch, 0, [5], 0.0), p, state=("state", i), refit=i in refits)
         if stop:
             break
     return probs
@@ -36,6 +36,16 @@ def test_a_cycling_em_ends_at_its_best_sweep():
     assert m.fall_back() == ("state", best)
     np.testing.assert_array_equal(m.posterior(), probs[best])
     assert m.fell_back and m.best[0].sweep == best
+
+
+def test_only_sweeps_since_the_last_hyperparameter_refit_compete():
+    rng = np.random.default_rng(2)
+    marginals = [100.0, 900.0, 300.0, 850.0, 200.0, 800.0, 150.0, 700.0]
+    m = _monitor()
+    probs = _feed(m, marginals, [0.45] * len(marginals), rng, refits=(0, 2))
+    best = 2 + int(np.argmax(marginals[2:]))                 # sweep 1's 900 came with older hyperparameters
+    assert best == 3 and m.fall_back() == ("state", best)
+    np.testing.assert_array_equal(m.posterior(), probs[best])
 
 
 def test_a_converged_em_averages_the_sweeps_after_convergence():
@@ -61,7 +71,10 @@ def test_the_sem_that_does_not_converge_keeps_its_best_sweep():
     m = MultimodalSEM(1, disturbance=True, max_sweeps=3, min_sweeps=3, patience=3, seed=0).fit(
         x[:, None], y[:, None], t=t)
     lm = [r.log_marginal for r in m.trace_]
+    # on a log this short the sweeps refit the hyperparameters at sweeps 0, 1, 2, 4, ... until the
+    # sweep limit (3 sweeps: 0-2; then one averaged sweep, no refit): the best is taken from 2 on
+    last_refit = max(i for i in (0, 1, 2, 4, 8, 16, 32) if i < 3)
     assert not m.converged_
-    assert m.labels_sweep_ == int(np.argmax(lm))
-    assert m.log_marginal_ == max(lm)
+    assert m.labels_sweep_ == last_refit + int(np.argmax(lm[last_refit:]))
+    assert m.log_marginal_ == max(lm[last_refit:])
     assert m.disturbed_[dist].mean() >= 0.9 and m.disturbed_[~dist].mean() <= 0.05

@@ -71,7 +71,7 @@ def _flags_note(rep: dict) -> str:
         best, last = trace[kept], trace[-1]
         cycle = (f" The sweeps did not converge (the last held {last['n_disturbed']} samples in the disturbance "
                  f"state, log marginal {last['log_marginal']:.1f}); the labels are sweep {kept}'s, whose log "
-                 f"marginal {best['log_marginal']:.1f} is the highest of all sweeps.")
+                 f"marginal {best['log_marginal']:.1f} is the highest since the last hyperparameter refit.")
         trace = trace[:kept + 1]
     else:
         cycle = ""

@@ -52,11 +52,13 @@ class ConvergenceMonitor:
         self.best: tuple[SweepRecord, np.ndarray, object] | None = None
         self.fell_back = False
 
-    def update(self, rec: SweepRecord, probs: np.ndarray, state: object = None) -> bool:
+    def update(self, rec: SweepRecord, probs: np.ndarray, state: object = None, refit: bool = False) -> bool:
         """Record one sweep, its marginals (T, S) and the caller's ``state`` after it (kept while
-        it is the best sweep); True when the EM should stop."""
+        it is the best sweep); ``refit``: the sweep refitted the hyperparameters, so only it and
+        the sweeps after it compete for the best (their log marginals share hyperparameters, which
+        earlier sweeps had less optimised). True when the EM should stop."""
         self.trace.append(rec)
-        if self.best is None or rec.log_marginal > self.best[0].log_marginal:
+        if self.best is None or refit or rec.log_marginal > self.best[0].log_marginal:
             self.best = (rec, probs, state)
         if self._post_sum is None:
             self._post_sum = np.zeros_like(probs)
@@ -93,7 +95,8 @@ class ConvergenceMonitor:
     def fall_back(self) -> object:
         """Where the sweeps did not converge (they cycle between labellings, each M-step undoing the
         last), end at the sweep whose parameters explain the log best, its log marginal
-        likelihood the highest of all sweeps (what EM climbs), rather than averaging the cycle's
+        likelihood the highest of the sweeps since the last hyperparameter refit (what EM
+        climbs), rather than averaging the cycle's
         last sweeps: the posterior becomes that sweep's marginals. Returns the state given with it."""
         rec, probs, state = self.best
         self._post_sum, self._n_avg, self.fell_back = np.array(probs, copy=True), 1, True

@@ -281,7 +281,7 @@ class MultimodalSEM:
                 self.progress(rec)
             else:  # nobody takes the sweeps: a stage report each (the diagnosis's learner)
                 report(f"EM sweep {sweep}: {changed:.1%} of the labels changed ({rec.seconds:.1f} s)")
-            if monitor.update(rec, step.probs, (copy.deepcopy(params), self.last_sweep_)):
+            if monitor.update(rec, step.probs, (copy.deepcopy(params), self.last_sweep_), refit=optimise):
                 break
             fleeting = sweep + 1 >= self.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
             short = short + 1 if fleeting else 0
