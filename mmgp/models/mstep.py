@@ -248,10 +248,13 @@ class ModeFitter:
         A joint stuck by dry friction holds whatever torque within +-(its friction) balances the
         rest, so its torque is not a function of the state. The model itself learnt that friction
         on the sliding branches: at each resting sample (rest weight > 0.01) the GP is evaluated
-        with the joint's velocity sign set to +1 and to -1; half their difference is the band's
-        half-width, their mean its centre (plus the basis mean), their mean variance (incl.
-        noise) the blur: the branches are where the model has data, while the sample's own
-        state (sign near 0) may have none. Out of window like the mode's own predictions
+        with the joint's velocity sign set to +1 and to -1; their mean is the band's centre (plus
+        the basis mean), their mean variance (incl. noise) the blur, half their difference the
+        half-width: the branches are where the model has data, while the sample's own state
+        (sign near 0) may have none. With a mean basis that has dry-friction columns the
+        half-width is the basis's dry friction alone: its coefficients are fitted where the
+        joint slides and are never negative, so the band dissipates, while near rest the GP's
+        own odd part learns to cancel the basis's step (a noisy velocity sign flips it there). Out of window like the mode's own predictions
         (``support``: the GP's samples): in-sample, a GP that has memorised a push at a pose
         visited once puts the band on the push, and the push is missed.
         Elsewhere: centre 0, width 0, variance 1.
@@ -282,9 +285,7 @@ class ModeFitter:
             centre[idx, j] = 0.5 * (branch[0] + branch[1])
             half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
             if coef is not None and self.dry_cols:
-                # the band is the mean's dry friction alone: near rest the GP learns to cancel the
-                # basis's friction (noise turns the smooth sign there), so its branches at rest
-                # hold the opposite step and the band collapses (benchmarks/README.md, tenth session)
+                # the basis's dry friction: the GP's branches would collapse the band (docstring)
                 half[idx, j] = 0.5 * np.abs((plus[idx, j] - minus[idx, j]) @ coef[j])
             bvar[idx, j] = 0.5 * (bv[0] + bv[1])
         return centre, half, bvar
