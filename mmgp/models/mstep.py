@@ -370,17 +370,17 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         mus.append(mean)
         vars_.append(var)
         lu = gaussian_logpdf(Y, mean, var)      # (T, n) per joint, untouched
+        band = None
         if fitter.rest is not None:
             centre, half, bvar = fitter.friction_band(gp, coef, support)
             bands.append(half)
-            lu = at_rest_logpdf(lu, Y - centre, half, bvar * params.calib[k], fitter.rest)
+            band = (Y - centre, half, bvar * params.calib[k], fitter.rest)
+            lu = at_rest_logpdf(lu, *band)
         lp = None
         if disturbance:
             # A push acts on one link: the chain mixture (push_loglik) over which link, each
-            # loaded joint from the scale mixture (pushed_logpdf). Pushed at rest, the joint
-            # would still hold its band; modelling that (the band blurred by Sigma_d) was
-            # measured worse (fewer undisturbed samples classified correctly).
-            lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor)
+            # loaded joint from the scale mixture (pushed_logpdf), at rest still in its band.
+            lp = pushed_logpdf(Y, mean, var, params.sigma_d, params.sigma_floor, band)
         cols = [k, K + k] if disturbance else [k]
         loglik[:, cols] = _mode_columns(lu, lp, fitter.hold, fitter.muted)
         if once is not None:
@@ -410,17 +410,28 @@ PUSH_SCALES = (1.0, 0.1, 0.01)
 
 
 def pushed_logpdf(Y: np.ndarray, mean: np.ndarray, var: np.ndarray, sigma_d: np.ndarray,
-                  floor: np.ndarray | None = None) -> np.ndarray:
+                  floor: np.ndarray | None = None, band: tuple | None = None) -> np.ndarray:
     """Per-joint log density (T, n) of a pushed sample: N(mean, var + Sigma_d) on one joint
     (n = 1); on several joints an equal-weight scale mixture over ``PUSH_SCALES`` of Sigma_d, each
     scaled spread at least ``floor`` (n,) N^2*m^2. Why a mixture: Sigma_d pools every push of
     the log, and a push on a distal link loads the proximal joints through long lever arms, so
     Sigma_d there is set by the hardest shoves; a proximal or light push, a few predictive
-    standard deviations off, then fits "untouched" better than "pushed"."""
+    standard deviations off, then fits "untouched" better than "pushed".
+
+    ``band`` (offset from the band's centre, half-width, variance, rest weight; each (T, n)), as
+    :func:`at_rest_logpdf` takes them: a joint pushed while it rests still holds any torque in
+    its friction band, so its pushed torque is the band blurred by the push's spread as well
+    (never denser than the untouched band inside it: only torque beyond the band is evidence)."""
+    def spread(extra):
+        lg = gaussian_logpdf(Y, mean, var + extra)
+        if band is None:
+            return lg
+        e, half, bvar, rest = band
+        return at_rest_logpdf(lg, e, half, bvar + extra, rest)
+
     if Y.shape[1] == 1:
-        return gaussian_logpdf(Y, mean, var + sigma_d)
-    parts = [gaussian_logpdf(Y, mean, var + (sigma_d * f if floor is None else np.maximum(sigma_d * f, floor)))
-             for f in PUSH_SCALES]
+        return spread(sigma_d)
+    parts = [spread(sigma_d * f if floor is None else np.maximum(sigma_d * f, floor)) for f in PUSH_SCALES]
     return logsumexp(np.stack(parts), 0) - np.log(len(PUSH_SCALES))
 
 
