@@ -58,6 +58,46 @@ def test_at_rest_density_is_the_weighted_mixture():
     np.testing.assert_allclose(got, ref, rtol=1e-7)
 
 
+def test_pushed_at_rest_is_the_band_blurred_by_the_push():
+    """Independent reference (quadrature): a joint pushed while it rests (weight w) holds any
+    torque in its band plus the push: (1 - w) N(y; mean, var + Sigma_d) + w (uniform band
+    convolved with N(0, band var + Sigma_d)); on several joints the equal-weight mixture over
+    the push's scales, each at least the floor."""
+    from mmgp.models.mstep import PUSH_SCALES, pushed_logpdf
+
+    rng = np.random.default_rng(3)
+    T, n = 5, 2
+    Y, mean = rng.normal(size=(T, n)), rng.normal(size=(T, n))
+    var, bvar = rng.uniform(0.01, 0.2, (T, n)), rng.uniform(0.01, 0.2, (T, n))
+    e, half = rng.normal(scale=1.5, size=(T, n)), rng.uniform(0.2, 1.5, (T, n))
+    w = rng.uniform(0, 1, (T, n))
+    sd, floor = np.array([0.5, 2.0]), np.array([0.05, 0.05])
+    got = pushed_logpdf(Y, mean, var, sd, floor, band=(e, half, bvar, w))
+    ref = np.zeros((T, n))
+    for f in PUSH_SCALES:
+        s2 = np.maximum(sd * f, floor)
+        band = np.vectorize(lambda a, b, c: np.exp(_band_by_quadrature(a, b, c)))(e, half, bvar + s2)
+        ref += ((1 - w) * norm.pdf(Y, mean, np.sqrt(var + s2)) + w * band) / len(PUSH_SCALES)
+    np.testing.assert_allclose(got, np.log(ref), rtol=1e-7)
+
+
+def test_inside_its_band_a_resting_joint_is_no_evidence_of_a_push():
+    """Wherever a stuck joint's torque lies inside its band, the pushed density (the band
+    blurred by Sigma_d) is below the untouched one (the band blurred by the noise alone), whatever
+    the model's mean; beyond the band by a few push spreads, the push is the likelier."""
+    from mmgp.models.mstep import pushed_logpdf
+
+    e = np.linspace(-0.9, 0.9, 41)[:, None]
+    half, bvar, sd = np.full_like(e, 1.0), np.full_like(e, 0.01), np.array([0.25])
+    band = (e, half, bvar, np.ones_like(e))
+    lu = at_rest_logpdf(np.zeros_like(e), *band)
+    lp = pushed_logpdf(e, e, bvar, sd, None, band)        # the model's mean on the sample itself
+    assert (lp < lu).all()
+    far = np.array([[2.5]])
+    band_far = (far, np.ones_like(far), np.full_like(far, 0.01), np.ones_like(far))
+    assert pushed_logpdf(far, far, np.full_like(far, 0.01), sd, None, band_far) > at_rest_logpdf(np.zeros_like(far), *band_far)
+
+
 def test_rest_weight_closed_form():
     dq = np.array([[0.0, 0.1], [0.2, -0.3], [-0.6, 0.9]])
     v_s = np.array([0.2, 0.3])
@@ -500,3 +540,17 @@ def test_a_hold_at_its_bands_edge_between_pushes_is_not_a_push(tmp_path):
     assert abs(model.sem_.friction_band_.max() - coulomb) < 0.1 * coulomb
     assert (~flagged[truth == 0]).mean() >= 0.97
     assert flagged[truth == 1].mean() >= 0.95
+
+
+def test_a_panda_whose_joints_all_stick_in_holds_is_not_pushed(tmp_path):
+    """A push-free Panda recorded in MuJoCo (mmgp.sim.family.push_free_holds, seed 14183104 of
+    issue 29's sixth draw: moves alternating with holds, Coulomb friction on every joint). Every
+    flag is a false alarm. With the pushed density at rest a Gaussian about the model's mean, the
+    holds whose stuck torques sat near that mean were likelier pushed than stuck (5.1% flagged)."""
+    import mmgp
+    from mmgp.sim import family
+
+    spec = family.push_free_holds(14183104, "panda", max_samples=2000)
+    family.write_scenario(family.record(spec), tmp_path, "holds")
+    model = mmgp.MultimodalGP(n_modes=1, seed=0).fit(str(tmp_path / "holds.parquet"))
+    assert model.sem_.disturbed_.mean() < 0.02
