@@ -254,9 +254,10 @@ class ModeFitter:
         (sign near 0) may have none. With a mean basis that has dry-friction columns the
         half-width is the basis's dry friction alone: its coefficients are fitted where the
         joint slides and are never negative, so the band dissipates, while near rest the GP's
-        own odd part learns to cancel the basis's step (a noisy velocity sign flips it there). Out of window like the mode's own predictions
-        (``support``: the GP's samples): in-sample, a GP that has memorised a push at a pose
-        visited once puts the band on the push, and the push is missed.
+        own odd part learns to cancel the basis's step (a noisy velocity sign flips it there).
+        Out of window like the mode's own predictions (``support``: the GP's samples): in-sample,
+        a GP that has memorised a push at a pose visited once puts the band on the push, and the
+        push is missed.
         Elsewhere: centre 0, width 0, variance 1.
         """
         T, n = self.Y.shape
