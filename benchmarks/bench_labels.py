@@ -25,8 +25,8 @@ Sets of logs (``--sets``):
   ``issue29c``: a third draw of its levers (ISSUE29C_*, 2026-11-28), with the same arms.
   ``issue29d``: a fourth draw (ISSUE29D_*, 2026-11-28, fourth session), with the same arms.
   ``issue29e``: a fifth draw (ISSUE29E_*, 2026-11-29, tenth session), levers and fresh arms.
-  ``issue29f``: a sixth draw (ISSUE29F_*, 2026-11-29, eleventh session), levers and fresh arms.
-  ``issue29g``: a seventh draw (ISSUE29G_*, 2026-11-29, eleventh session), levers and fresh arms.
+  ``issue29f``: a sixth draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
+  ``issue29g``: a seventh draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -146,26 +146,6 @@ ISSUE29E_PANDA = (11812821, 13737537, 14950848)
 ISSUE29E_UR5 = (12188530, 12192978, 15903670)
 ISSUE29E_HOLDS_PANDA = (16027729,)
 ISSUE29E_HOLDS_UR5 = (17299723,)
-# A sixth held-out draw (2026-11-29, eleventh session, `secrets`), committed before anything was
-# scored on it: the fifth draw was scored once and its holds arms looked at since. Arms as the
-# fifth's (a fresh pool of 60 seeds by spec alone, in pool order; the next two pool seeds the holds).
-ISSUE29F_SOURCE = (11512378, 18779806, 11829982, 11619991, 16429735, 18001624, 16772495, 12509470, 15718826,
-                   11147141, 15433605, 18460447)
-ISSUE29F_SOURCE_FREE = (15668065, 18452991, 12139102, 14318771)
-ISSUE29F_PANDA = (15447400, 13605847, 17161524)
-ISSUE29F_UR5 = (14597668, 12331711, 10650099)
-ISSUE29F_HOLDS_PANDA = (14183104,)
-ISSUE29F_HOLDS_UR5 = (18323121,)
-# A seventh held-out draw (2026-11-29, eleventh session, `secrets`), committed before anything was
-# scored on it, for the pushed-at-rest band (the sixth draw was scored once on the basis's band and
-# its holds arms looked at since). Arms chosen as the fifth's, from a fresh pool.
-ISSUE29G_SOURCE = (10424536, 17655013, 15635348, 15961322, 17854623, 13229906, 15145115, 15371443, 13990814,
-                   15714735, 16135165, 15948389)
-ISSUE29G_SOURCE_FREE = (10438828, 13986487, 17109196, 12766638)
-ISSUE29G_PANDA = (14739323, 11290753, 14723438)
-ISSUE29G_UR5 = (16591133, 16629240, 14174269)
-ISSUE29G_HOLDS_PANDA = (11237025,)
-ISSUE29G_HOLDS_UR5 = (12819691,)
 # Each draw of issue 29 as (levers, push-free levers, Panda arms, UR5 arms, push-free holds Panda,
 # push-free holds UR5): the second to fourth draws reuse the first draw's arms.
 _ISSUE29_ARMS = (ISSUE29_PANDA, ISSUE29_UR5, ISSUE29_HOLDS_PANDA, ISSUE29_HOLDS_UR5)
@@ -176,10 +156,18 @@ ISSUE29_DRAWS = {
     "issue29d": (ISSUE29D_SOURCE, ISSUE29D_SOURCE_FREE, *_ISSUE29_ARMS),
     "issue29e": (ISSUE29E_SOURCE, ISSUE29E_SOURCE_FREE, ISSUE29E_PANDA, ISSUE29E_UR5, ISSUE29E_HOLDS_PANDA,
                  ISSUE29E_HOLDS_UR5),
-    "issue29f": (ISSUE29F_SOURCE, ISSUE29F_SOURCE_FREE, ISSUE29F_PANDA, ISSUE29F_UR5, ISSUE29F_HOLDS_PANDA,
-                 ISSUE29F_HOLDS_UR5),
-    "issue29g": (ISSUE29G_SOURCE, ISSUE29G_SOURCE_FREE, ISSUE29G_PANDA, ISSUE29G_UR5, ISSUE29G_HOLDS_PANDA,
-                 ISSUE29G_HOLDS_UR5),
+    # A sixth held-out draw (2026-11-29, eleventh session, `secrets`), committed before anything was
+    # scored on it: the fifth draw was scored once and its holds arms looked at since. Arms as the
+    # fifth's (a fresh pool of 60 seeds by spec alone, in pool order; the next two pool seeds the holds).
+    "issue29f": ((11512378, 18779806, 11829982, 11619991, 16429735, 18001624, 16772495, 12509470, 15718826,
+                  11147141, 15433605, 18460447), (15668065, 18452991, 12139102, 14318771),
+                 (15447400, 13605847, 17161524), (14597668, 12331711, 10650099), (14183104,), (18323121,)),
+    # A seventh held-out draw (same session, `secrets`), committed before anything was scored on it,
+    # for the pushed-at-rest band (the sixth was scored once on the basis's band and its holds arms
+    # looked at since). Arms chosen as the fifth's, from a fresh pool.
+    "issue29g": ((10424536, 17655013, 15635348, 15961322, 17854623, 13229906, 15145115, 15371443, 13990814,
+                  15714735, 16135165, 15948389), (10438828, 13986487, 17109196, 12766638),
+                 (14739323, 11290753, 14723438), (16591133, 16629240, 14174269), (11237025,), (12819691,)),
 }
 _ISSUE29_KINDS = ("source", "source-free", "panda", "ur5", "holds", "holds-ur5")
 

@@ -284,10 +284,11 @@ class ModeFitter:
                 plus, minus = self.basis_branches or (self.basis, self.basis)
                 branch = [branch[0] + plus[idx, j] @ coef[j], branch[1] + minus[idx, j] @ coef[j]]
             centre[idx, j] = 0.5 * (branch[0] + branch[1])
-            half[idx, j] = 0.5 * np.abs(branch[0] - branch[1])
-            if coef is not None and self.dry_cols:
-                # the basis's dry friction: the GP's branches would collapse the band (docstring)
-                half[idx, j] = 0.5 * np.abs((plus[idx, j] - minus[idx, j]) @ coef[j])
+            # with dry-friction columns, the basis's dry friction: the GP's branches would collapse
+            # the band (docstring)
+            dry = coef is not None and self.dry_cols
+            step = (plus[idx, j] - minus[idx, j]) @ coef[j] if dry else branch[0] - branch[1]
+            half[idx, j] = 0.5 * np.abs(step)
             bvar[idx, j] = 0.5 * (bv[0] + bv[1])
         return centre, half, bvar
 
