@@ -339,6 +339,37 @@ def test_diagnosis_learner_flags_nothing_on_logs_without_pushes(cases):
         assert (em["p_disturbed"] > 0.5).mean() < 0.01, name
 
 
+def test_the_learner_is_reused_only_for_the_same_residual_and_modes(cases, monkeypatch):
+    """``run_learner`` hands back an earlier run only when it had the same number of modes and
+    the same residual: the mode switch's learner (two modes on the fitted physics' residual)
+    must not be given a run on the nominal residual, whatever its number of modes."""
+    from mmgp.diagnosis import separation
+
+    spec, rec, truth = cases["actuator_pushes_coulomb"]
+    log, robot = C.recording_to_log(rec), C.nominal_robot(spec)
+    d = Diagnoser()
+    lp, n_full, smear = st.prepare_log(log, d._differentiator(), d.max_samples)
+    prob = st.build_problem(lp, robot, n_full, smear, effects=d.effects, payload_links=d.payload_links,
+                            n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
+                            rest_factor=d.rest_factor)
+    calls, real = [], separation.em_separate
+
+    def counted(resid, *a, n_modes, **k):
+        calls.append((n_modes, float(resid.sum())))
+        return real(resid, *a, n_modes=n_modes, **k)
+
+    monkeypatch.setattr(separation, "em_separate", counted)
+    kw = dict(max_points=200, seed=0)
+    first = st.run_learner(prob, 2, **kw)
+    assert st.run_learner(prob, 2, previous=first, **kw) is first
+    assert st.run_learner(prob, 2, previous=first, resid=prob.r_raw.copy(), **kw) is first
+    other = prob.r_raw + 0.5
+    st.run_learner(prob, 2, previous=first, resid=other, **kw)
+    st.run_learner(prob, 1, previous=first, **kw)
+    expected = [(2, float(prob.r_raw.sum())), (2, float(other.sum())), (1, float(prob.r_raw.sum()))]
+    assert calls == expected
+
+
 def _rest_runs_walk(rest, min_len):
     """Brute force: walk each joint sample by sample, measuring every run before keeping it."""
     out = np.zeros_like(rest)

@@ -228,13 +228,14 @@ class Separation:
 def run_learner(prob: Problem, n_modes: int, *, max_points: int, seed: int, previous: dict | None = None,
                 resid: np.ndarray | None = None) -> dict:
     """The learner's separation on ``resid`` (T, n) (default the nominal residual; the
-    re-identified body's when it is re-identified), reusing ``previous`` when it had as many
-    modes."""
-    if previous is not None and previous["n_modes"] == n_modes:
+    re-identified body's when it is re-identified), reusing ``previous`` when it ran with as
+    many modes on the same residual (its ``"residual"`` entry, added here)."""
+    r = prob.r_raw if resid is None else resid
+    if previous is not None and previous["n_modes"] == n_modes and np.array_equal(previous.get("residual"), r):
         return previous
     ctx = prob.ctx
-    return sep.em_separate(prob.r_raw if resid is None else resid, ctx.q, ctx.dq, ctx.ddq, prob.t, n_modes=n_modes,
-                           max_points=max_points, seed=seed)
+    em = sep.em_separate(r, ctx.q, ctx.dq, ctx.ddq, prob.t, n_modes=n_modes, max_points=max_points, seed=seed)
+    return {**em, "residual": r}
 
 
 def start_residual(prob: Problem, lib: LibraryFit, start) -> np.ndarray:
@@ -480,7 +481,9 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
     disturbed, found = scan(prob, e, friction_band(phys.coefficients(), phys.ctx), push_alpha=push_alpha, exclude=near)
     info, em = {**previous.info, **found}, previous.em
     if method == "auto" and disturbed.any():
-        em = run_learner(prob, max(2, em_modes), max_points=em_points, seed=seed, previous=em)
+        # the learner of the mode switch, on the fitted physics' residual, is reused
+        em = run_learner(prob, max(2, em_modes), max_points=em_points, seed=seed, previous=em,
+                         resid=raw_residual(prob, phys))
         disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=found["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)
