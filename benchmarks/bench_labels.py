@@ -27,6 +27,7 @@ Sets of logs (``--sets``):
   ``issue29e``: a fifth draw (ISSUE29E_*, 2026-11-29, tenth session), levers and fresh arms.
   ``issue29f``: a sixth draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
   ``issue29g``: a seventh draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
+  ``issue29h``: an eighth draw (ISSUE29_DRAWS, 2026-11-29, twelfth session), levers and fresh arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -168,6 +169,12 @@ ISSUE29_DRAWS = {
     "issue29g": ((10424536, 17655013, 15635348, 15961322, 17854623, 13229906, 15145115, 15371443, 13990814,
                   15714735, 16135165, 15948389), (10438828, 13986487, 17109196, 12766638),
                  (14739323, 11290753, 14723438), (16591133, 16629240, 14174269), (11237025,), (12819691,)),
+    # An eighth held-out draw (2026-11-29, twelfth session, `secrets`, seeds not in this file),
+    # committed before anything was scored on it (the seventh was scored once on the pushed-at-rest
+    # band and looked at since). Arms chosen as the fifth's, from a fresh pool.
+    "issue29h": ((11289989, 10518466, 17406202, 11120979, 14237356, 10206548, 10909312, 13113762, 11037261,
+                  15327698, 17143110, 13478129), (18085318, 10583183, 14976966, 16891665),
+                 (13548099, 17915839, 16932458), (12500929, 14883218, 17912043), (13398547,), (11453125,)),
 }
 _ISSUE29_KINDS = ("source", "source-free", "panda", "ur5", "holds", "holds-ur5")
 
