@@ -27,7 +27,7 @@ from .models.features import MeanBasis, build_features, load_logs, resolve_mean_
 from .models.report import labels_frame, training_report
 
 MODEL_FORMAT = "mmgp-model"
-MODEL_VERSION = 3
+MODEL_VERSION = 4
 _CHOICES = {"estep": ("mpm", "ffbs", "gibbs"), "semiparametric": ("residual", "feature", "none"),
             "mean_basis": ("auto", "rbd", "payload", "none"), "objective": ("loo", "marginal"),
             "gp_method": GP_METHODS}
@@ -42,7 +42,7 @@ class MultimodalGP(BaseEstimator):
     """Multimodal Gaussian-process inverse dynamics tau = f(q, dq, ddq) from messy robot logs.
 
     Stochastic EM over ``n_modes`` dynamic modes (e.g. payloads) and a disturbance mode (pushes),
-    with one RBF GP per mode over ``[q, dq, ddq, tanh(dq / v_s)]``; every training sample
+    with one RBF GP per mode over ``[q, dq, ddq, tanh(dq / v_s)(1 - w)]`` (w the rest weight); every training sample
     gets a mode and a disturbance label. Units: rad (m), rad/s, rad/s^2, N*m (N), s.
 
     One mode without the disturbance mode has no labels to learn: the EM is skipped and one GP
@@ -82,9 +82,11 @@ class MultimodalGP(BaseEstimator):
     block_s : float >= 0, default 2.0
         Block length in s of the leave-block-out hyperparameter objective (0: per-sample LOO).
     friction_feature : bool, default True
-        Add tanh(dq / v_s) per joint to the GP inputs (Coulomb friction's step); v_s is the one
-        smooth-sign rule of the package (:func:`mmgp.physics.context.smooth_sign_scale`: 3 x the
-        joint's velocity noise, at least 1% of its RMS speed), the same the diagnosis uses.
+        Add tanh(dq / v_s) (1 - w) per joint to the GP inputs (Coulomb friction's step, faded
+        out where the joint may rest: w the rest weight,
+        :func:`mmgp.models.features.sliding_sign`); v_s is the one smooth-sign rule of the
+        package (:func:`mmgp.physics.context.smooth_sign_scale`: 3 x the joint's velocity noise,
+        at least 1% of its RMS speed), the same the diagnosis uses.
     mean_basis : "auto", "payload", "rbd" or "none", default "auto"
         With a robot and "residual": each mode's mean is linear in rigid-body regressors,
         fitted robustly per mode, under its GP, so a mode extrapolates like physics. "payload"
@@ -169,7 +171,8 @@ class MultimodalGP(BaseEstimator):
     report_ : dict, the content of ``report.json``; ``heldout``: the held-out score per joint
         (:func:`mmgp.evaluation.heldout.heldout_score`: model, rigid body, mean).
     n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
-    friction_scale_ * ((n,) v_s in rad/s, or None), mean_basis_ * (a
+    friction_scale_ * ((n,) v_s in rad/s, or None), sign_fades_ * (the friction input fades out at
+    rest; False for models saved before format version 4), mean_basis_ * (a
     :class:`mmgp.models.features.MeanBasis` or None), basis_coef_ * (per mode
     (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
     logs_ (the checked logs), features_ (GP inputs and targets), sem_ (the fitted
@@ -359,6 +362,7 @@ class MultimodalGP(BaseEstimator):
                                            feats.velocity_reversal(basis), first=first, **data)
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)
         self.semiparametric_, self.mean_basis_, self.friction_scale_ = semi, basis, fscale
+        self.sign_fades_ = True
         self.joint_names_ = logs_[0].joint_names or (robot.joint_names if robot is not None else
                                                      [f"joint_{j}" for j in range(logs_[0].n_joints)])
         self._set_sem(sem)
@@ -397,7 +401,7 @@ class MultimodalGP(BaseEstimator):
         return self.support_X_[0][:, : len(self.joint_names_)]
 
     def gp(self, mode: int = 0):
-        """Mode ``mode``'s GP over the inputs [q, dq, ddq(, tanh(dq / v_s))(, tau_rbd)]: an
+        """Mode ``mode``'s GP over the inputs [q, dq, ddq(, the sliding sign)(, tau_rbd)]: an
         :class:`mmgp.gp.exact.ExactGP` or :class:`mmgp.gp.sparse.SparseGP` (``gp_kinds_``)."""
         check_is_fitted(self, "support_X_")
         if not isinstance(mode, (int, np.integer)) or not 0 <= mode < self.n_modes_:
@@ -454,7 +458,7 @@ class MultimodalGP(BaseEstimator):
         gp = self.gp(mode)
         coef = self.basis_coef_[mode]
         f = state_features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
-                      friction_scale=self.friction_scale_, friction_sign=friction_sign,
+                      friction_scale=self.friction_scale_, friction_sign=friction_sign, sign_fades=self.sign_fades_,
                       mean_basis=self.mean_basis_ if coef is not None else None)
         mean, std = gp.predict(f.X, include_noise=True) if return_std else (gp.predict(f.X, return_std=False), None)
         mean, std = mean.reshape(len(q), -1), (None if std is None else std.reshape(len(q), -1))
@@ -513,12 +517,12 @@ class MultimodalGP(BaseEstimator):
     @classmethod
     def load(cls, model_dir: str | os.PathLike) -> "MultimodalGP":
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
-        format versions 1 to 3. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
+        format versions 1 to 4. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
         from .models.saved import read_gp_weights, read_model_arrays, read_model_meta, read_model_robot
 
         model_dir = Path(model_dir)
-        meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, MODEL_VERSION))
+        meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, 3, MODEL_VERSION))
         try:
             model = cls(**meta["settings"])
         except TypeError as exc:
@@ -532,6 +536,8 @@ class MultimodalGP(BaseEstimator):
         model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
         model.basis_coef_ = [z.get(f"basis_coef_{k}") for k in range(K)]
         model.friction_scale_ = z.get("friction_scale")
+        # versions 1 to 3 read the smooth sign without its fade at rest
+        model.sign_fades_ = meta["version"] >= 4
         model.inducing_ = [z.get(f"inducing_{k}") for k in range(K)]
         model.gp_weights_ = read_gp_weights(meta, z)
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support

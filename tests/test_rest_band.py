@@ -106,6 +106,44 @@ def test_rest_weight_closed_form():
     assert rest_weight(dq, v_s)[2, 1] < 0.012          # beyond 3 v_s: moving
 
 
+def test_sliding_sign_closed_form():
+    """The GP's friction input is tanh(x) (1 - exp(-x^2 / 2)), x = dq / v_s: 0 at rest, odd in dq,
+    the smooth sign once the joint slides (values from the closed form, by hand)."""
+    from mmgp.models.features import sliding_sign
+
+    v_s = np.array([0.05, 0.2])
+    dq = np.array([[0.0, 0.0], [0.05, -0.2], [-0.1, 0.6], [0.5, -2.0]])
+    x = dq / v_s
+    np.testing.assert_allclose(sliding_sign(dq, v_s), np.tanh(x) * (1.0 - np.exp(-0.5 * x ** 2)), rtol=1e-13)
+    assert sliding_sign(dq, v_s)[1, 0] == pytest.approx(0.761594156 * 0.393469340, rel=1e-8)   # x = 1
+    assert sliding_sign(dq, v_s)[1, 1] == pytest.approx(-0.761594156 * 0.393469340, rel=1e-8)  # x = -1
+    np.testing.assert_array_equal(sliding_sign(dq, v_s)[0], [0.0, 0.0])
+    np.testing.assert_allclose(sliding_sign(dq, v_s)[3], [1.0, -1.0], atol=1e-8)                # x = +-10
+
+
+def test_a_model_saved_before_the_fade_reads_the_smooth_sign(tmp_path):
+    """Format version 3 models were trained on tanh(dq / v_s) at rest too: loaded, they predict
+    from that input (checked against the GP evaluated on inputs built here), version 4 from the
+    faded sign."""
+    import json
+
+    import mmgp
+
+    log, _ = mmgp.demo_files()
+    model = mmgp.MultimodalGP(n_modes=1, max_sweeps=4, seed=0, mean_basis="none", semiparametric="none").fit(log)
+    model.save(tmp_path / "m")
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert meta["version"] == 4
+    meta["version"] = 3
+    (tmp_path / "m" / "model.json").write_text(json.dumps(meta))
+    old = mmgp.MultimodalGP.load(tmp_path / "m")
+    v_s = model.friction_scale_
+    q, dq, ddq = np.array([[0.3], [0.3]]), np.array([[0.0], [0.5 * v_s[0]]]), np.zeros((2, 1))
+    for fitted, sign in ((old, np.tanh(dq / v_s)), (model, np.tanh(dq / v_s) * (1 - np.exp(-0.5 * (dq / v_s) ** 2)))):
+        want = fitted.gp(0).predict(np.hstack([q, dq, ddq, sign]), return_std=False).reshape(2, 1)
+        np.testing.assert_allclose(fitted.predict(q, dq, ddq, return_std=False), want, rtol=1e-10, atol=1e-12)
+
+
 @pytest.mark.parametrize("window", [1, 3, 6])
 def test_per_joint_masked_average_matches_a_loop(window):
     rng = np.random.default_rng(window)

@@ -1,4 +1,4 @@
-"""GP inputs and targets from checked logs: [q, dq, ddq, tanh(dq / v_s)], the rigid-body part
+"""GP inputs and targets from checked logs: [q, dq, ddq, sliding sign of dq], the rigid-body part
 (residual or feature) and the rigid-body regressor basis of each mode's mean."""
 from __future__ import annotations
 
@@ -182,7 +182,7 @@ def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = F
 
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
                    friction_scale: np.ndarray | None = None, mean_basis: MeanBasis | None = None) -> Features:
-    """GP inputs [q, dq, ddq, tanh(dq / v_s)(, tau_rbd)] and targets from checked logs."""
+    """GP inputs [q, dq, ddq, sliding_sign(dq)(, tau_rbd)] and targets from checked logs."""
     q = np.concatenate([lg.q for lg in logs])
     dq = np.concatenate([lg.dq for lg in logs])
     ddq = np.concatenate([lg.ddq for lg in logs])
@@ -195,16 +195,18 @@ def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
 
 
 def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-                   friction_sign=None, mean_basis: MeanBasis | None = None) -> Features:
+                   friction_sign=None, mean_basis: MeanBasis | None = None, sign_fades: bool = True) -> Features:
     """GP inputs and targets at states q, dq, ddq and torques tau (T, n), with the columns of
     ``mean_basis`` (None: no basis); ``friction_sign`` (+1 or -1, or per sample (T, 1)) replaces
-    the smooth sign input (prediction on one sliding branch)."""
+    the smooth sign input (prediction on one sliding branch); ``sign_fades`` False: the smooth
+    sign without :func:`sliding_sign`'s fade at rest (models saved before format version 4)."""
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
     parts = [q, dq, ddq]
     if friction_scale is not None:
-        parts.append(np.tanh(dq / friction_scale) if friction_sign is None else np.full_like(dq, friction_sign))
+        smooth = sliding_sign(dq, friction_scale) if sign_fades else np.tanh(dq / friction_scale)
+        parts.append(smooth if friction_sign is None else np.full_like(dq, friction_sign))
     X = np.concatenate(parts, axis=1)
     tau_rbd = None
     if robot is not None and semiparametric != "none":
@@ -225,6 +227,17 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
     if mean_basis is not None:
         basis = mean_basis.columns(robot, q, dq, ddq, tau_rbd, sign)
     return Features(X, Y, tau_rbd, list(starts), basis=basis, has_sign=friction_scale is not None)
+
+
+def sliding_sign(dq: np.ndarray, friction_scale: np.ndarray) -> np.ndarray:
+    """(T, n) the GP's friction input: the smooth sign ``tanh(dq / v_s)`` times one minus the rest
+    weight (:func:`~mmgp.physics.context.rest_weight`), 0 where the joint rests, the smooth sign
+    where it slides. Dry friction has a direction only while the joint slides: at rest the
+    velocity's sign is the noise's, and a stuck joint holds any torque in its band. Read there,
+    a hold at one edge of the band with the noise's sign teaches the GP an odd function of that
+    noise, which then predicts friction pushing the joint along on the next slide from the same
+    pose (energy injected: validation val03's start of a slide after a hold)."""
+    return np.tanh(dq / friction_scale) * (1.0 - rest_weight(dq, friction_scale))
 
 
 def dry_friction_sign(dq: np.ndarray, friction_scale: np.ndarray) -> np.ndarray:

@@ -357,7 +357,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
     once = np.empty((T, S)) if fitter.hold is not None else None
     mode_of = states % K
     dist = states >= K if disturbance else np.zeros(T, bool)
-    mus, vars_, bands = [], [], []
+    mus, vars_, bands, blurs = [], [], [], []
     for k in range(K):
         members = np.flatnonzero((mode_of == k) & ~dist)
         if params.stuck is not None and (~params.stuck[k][members]).sum() >= 0.25 * len(members):
@@ -376,6 +376,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         if fitter.rest is not None:
             centre, half, bvar = fitter.friction_band(gp, coef, support)
             bands.append(half)
+            blurs.append(bvar * params.calib[k])
             band = (Y - centre, half, bvar * params.calib[k], fitter.rest)
             lu = at_rest_logpdf(lu, *band)
         lp = None
@@ -388,7 +389,7 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         if once is not None:
             once[:, cols] = _mode_columns(lu, lp, None, fitter.muted)
     if fitter.rest is not None:
-        params.stuck = [stuck_samples(fitter.rest, half, var) for half, var in zip(bands, vars_)]
+        params.stuck = [stuck_samples(fitter.rest, half, blur) for half, blur in zip(bands, blurs)]
     return Emissions(mus, vars_, loglik, bands if fitter.rest is not None else None, once)
 
 
@@ -476,10 +477,14 @@ def hold_weights(rest: np.ndarray, starts: Sequence[int] = (0,)) -> np.ndarray:
     return out
 
 
-def stuck_samples(rest: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:
-    """(T,) samples where some joint rests (weight > 0.5) with a friction band wider than its
-    predictive spread (half-width^2 > variance): its torque there may be anything in the band."""
-    return (resting(rest) & (half ** 2 > var)).any(1)
+def stuck_samples(rest: np.ndarray, half: np.ndarray, blur: np.ndarray) -> np.ndarray:
+    """(T,) samples where some joint rests (weight > 0.5) with a friction band wider than the
+    spread that blurs its edges (half-width^2 > ``blur``, the sliding branches' predictive
+    variance, :meth:`ModeFitter.friction_band`): its torque there may be anything in the band.
+    The branches' spread, not the sample's own predictive: at a hold the GP's own spread grows
+    with the hold's scatter across the band, so judged by it the holds stayed in the GP and
+    taught it the band's scatter as a function of the state."""
+    return (resting(rest) & (half ** 2 > blur)).any(1)
 
 
 def band_logpdf(e: np.ndarray, half: np.ndarray, var: np.ndarray) -> np.ndarray:

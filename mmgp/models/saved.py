@@ -112,7 +112,7 @@ def _finite(arrays: dict, key: str, path: Path, shape: tuple) -> np.ndarray:
 
 
 def _n_inputs(meta: dict, raw: dict) -> int:
-    """GP inputs per sample: q, dq, ddq, then tanh(dq / v_s) with friction, tau_rbd as a feature."""
+    """GP inputs per sample: q, dq, ddq, then the sliding sign with friction, tau_rbd as a feature."""
     n = len(meta["joint_names"])
     rbd = bool(meta.get("robot")) and meta["settings"].get("semiparametric") == "feature"
     return n * (3 + ("friction_scale" in raw) + rbd)
