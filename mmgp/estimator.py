@@ -42,7 +42,7 @@ class MultimodalGP(BaseEstimator):
     """Multimodal Gaussian-process inverse dynamics tau = f(q, dq, ddq) from messy robot logs.
 
     Stochastic EM over ``n_modes`` dynamic modes (e.g. payloads) and a disturbance mode (pushes),
-    with one RBF GP per mode over ``[q, dq, ddq, tanh(dq / v_s)(1 - w)]`` (w the rest weight); every training sample
+    with one RBF GP per mode over ``[q, dq, ddq, tanh(dq / v_s)(1 - w)]``; every training sample
     gets a mode and a disturbance label. Units: rad (m), rad/s, rad/s^2, N*m (N), s.
 
     One mode without the disturbance mode has no labels to learn: the EM is skipped and one GP
@@ -82,11 +82,9 @@ class MultimodalGP(BaseEstimator):
     block_s : float >= 0, default 2.0
         Block length in s of the leave-block-out hyperparameter objective (0: per-sample LOO).
     friction_feature : bool, default True
-        Add tanh(dq / v_s) (1 - w) per joint to the GP inputs (Coulomb friction's step, faded
-        out where the joint may rest: w the rest weight,
-        :func:`mmgp.models.features.sliding_sign`); v_s is the one smooth-sign rule of the
-        package (:func:`mmgp.physics.context.smooth_sign_scale`: 3 x the joint's velocity noise,
-        at least 1% of its RMS speed), the same the diagnosis uses.
+        Add tanh(dq / v_s) (1 - w) per joint to the GP inputs (Coulomb friction's step, faded out
+        at rest, :func:`mmgp.models.features.sliding_sign`); v_s is the package's one smooth-sign
+        rule (:func:`mmgp.physics.context.smooth_sign_scale`), the same the diagnosis uses.
     mean_basis : "auto", "payload", "rbd" or "none", default "auto"
         With a robot and "residual": each mode's mean is linear in rigid-body regressors,
         fitted robustly per mode, under its GP, so a mode extrapolates like physics. "payload"
@@ -171,8 +169,7 @@ class MultimodalGP(BaseEstimator):
     report_ : dict, the content of ``report.json``; ``heldout``: the held-out score per joint
         (:func:`mmgp.evaluation.heldout.heldout_score`: model, rigid body, mean).
     n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
-    friction_scale_ * ((n,) v_s in rad/s, or None), sign_fades_ * (the friction input fades out at
-    rest; False for models saved before format version 4), mean_basis_ * (a
+    friction_scale_ * ((n,) v_s in rad/s, or None), sign_fades_ * (False: saved before version 4), mean_basis_ * (a
     :class:`mmgp.models.features.MeanBasis` or None), basis_coef_ * (per mode
     (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
     logs_ (the checked logs), features_ (GP inputs and targets), sem_ (the fitted
@@ -361,8 +358,7 @@ class MultimodalGP(BaseEstimator):
         sem, dissipation = fit_dissipative(lambda: MultimodalSEM(n_modes=K, **kw), feats.X, feats.Y,
                                            feats.velocity_reversal(basis), first=first, **data)
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)
-        self.semiparametric_, self.mean_basis_, self.friction_scale_ = semi, basis, fscale
-        self.sign_fades_ = True
+        self.semiparametric_, self.mean_basis_, self.friction_scale_, self.sign_fades_ = semi, basis, fscale, True
         self.joint_names_ = logs_[0].joint_names or (robot.joint_names if robot is not None else
                                                      [f"joint_{j}" for j in range(logs_[0].n_joints)])
         self._set_sem(sem)
@@ -536,8 +532,7 @@ class MultimodalGP(BaseEstimator):
         model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
         model.basis_coef_ = [z.get(f"basis_coef_{k}") for k in range(K)]
         model.friction_scale_ = z.get("friction_scale")
-        # versions 1 to 3 read the smooth sign without its fade at rest
-        model.sign_fades_ = meta["version"] >= 4
+        model.sign_fades_ = meta["version"] >= 4        # versions 1 to 3: no fade at rest
         model.inducing_ = [z.get(f"inducing_{k}") for k in range(K)]
         model.gp_weights_ = read_gp_weights(meta, z)
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support
