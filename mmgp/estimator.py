@@ -169,7 +169,7 @@ class MultimodalGP(BaseEstimator):
     report_ : dict, the content of ``report.json``; ``heldout``: the held-out score per joint
         (:func:`mmgp.evaluation.heldout.heldout_score`: model, rigid body, mean).
     n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
-    friction_scale_ * ((n,) v_s in rad/s, or None), sign_fades_ * (False: saved before version 4), mean_basis_ * (a
+    friction_scale_ * ((n,) v_s in rad/s, or None), sign_fades_ * (input faded at rest: with the band), mean_basis_ * (a
     :class:`mmgp.models.features.MeanBasis` or None), basis_coef_ * (per mode
     (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
     logs_ (the checked logs), features_ (GP inputs and targets), sem_ (the fitted
@@ -341,7 +341,7 @@ class MultimodalGP(BaseEstimator):
         basis = resolve_mean_basis(self.mean_basis, robot, semi)
         band = fscale is not None and rest_band_on(self.rest_band, basis)
         basis = dataclasses.replace(basis, friction=True) if band and basis is not None else basis
-        feats = build_features(logs_, semi, robot, fscale, mean_basis=basis)
+        feats = build_features(logs_, semi, robot, fscale, mean_basis=basis, sign_fades=band)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:
             raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
@@ -358,7 +358,7 @@ class MultimodalGP(BaseEstimator):
         sem, dissipation = fit_dissipative(lambda: MultimodalSEM(n_modes=K, **kw), feats.X, feats.Y,
                                            feats.velocity_reversal(basis), first=first, **data)
         self.robot_, self.robot_spec_ = robot, _robot_spec(robot)
-        self.semiparametric_, self.mean_basis_, self.friction_scale_, self.sign_fades_ = semi, basis, fscale, True
+        self.semiparametric_, self.mean_basis_, self.friction_scale_, self.sign_fades_ = semi, basis, fscale, band
         self.joint_names_ = logs_[0].joint_names or (robot.joint_names if robot is not None else
                                                      [f"joint_{j}" for j in range(logs_[0].n_joints)])
         self._set_sem(sem)
@@ -505,7 +505,7 @@ class MultimodalGP(BaseEstimator):
         meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "mmgp_version": __version__,
                 "n_modes": self.n_modes_, "joint_names": self.joint_names_, "settings": self._settings_record(),
                 "robot": self.robot_spec_, "mean_basis": getattr(self.mean_basis_, "name", None), "gp_kinds": self.gp_kinds_,
-                "gp_weights_sha256": digests}
+                "gp_weights_sha256": digests, "sign_fades": bool(self.sign_fades_)}
         out_dir = Path(out_dir)
         atomic_write_bytes(out_dir / "model.npz", buf.getvalue())
         atomic_write_bytes(out_dir / "model.json", json.dumps(meta, indent=2).encode())
@@ -532,7 +532,7 @@ class MultimodalGP(BaseEstimator):
         model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
         model.basis_coef_ = [z.get(f"basis_coef_{k}") for k in range(K)]
         model.friction_scale_ = z.get("friction_scale")
-        model.sign_fades_ = meta["version"] >= 4        # versions 1 to 3: no fade at rest
+        model.sign_fades_ = bool(meta.get("sign_fades", False))        # versions 1 to 3: no fade
         model.inducing_ = [z.get(f"inducing_{k}") for k in range(K)]
         model.gp_weights_ = read_gp_weights(meta, z)
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support

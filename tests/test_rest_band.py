@@ -122,26 +122,37 @@ def test_sliding_sign_closed_form():
 
 
 def test_a_model_saved_before_the_fade_reads_the_smooth_sign(tmp_path):
-    """Format version 3 models were trained on tanh(dq / v_s) at rest too: loaded, they predict
-    from that input (checked against the GP evaluated on inputs built here), version 4 from the
-    faded sign."""
+    """With the friction band at rest the GP's friction input fades there; format version 3
+    models were trained on tanh(dq / v_s) at rest too, and loaded they predict from it: the two
+    predictions differ by the same GP evaluated on the two inputs built here (basis and rigid
+    body are common). Without the band (no robot model) the input does not fade."""
     import json
 
     import mmgp
 
     log, _ = mmgp.demo_files()
-    model = mmgp.MultimodalGP(n_modes=1, max_sweeps=4, seed=0, mean_basis="none", semiparametric="none").fit(log)
+    robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
+    model = mmgp.MultimodalGP(n_modes=1, robot=robot, max_sweeps=4, seed=0).fit(log)
     model.save(tmp_path / "m")
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
-    assert meta["version"] == 4
+    assert meta["version"] == 4 and meta["sign_fades"] is True and model.sign_fades_
     meta["version"] = 3
+    del meta["sign_fades"]
     (tmp_path / "m" / "model.json").write_text(json.dumps(meta))
     old = mmgp.MultimodalGP.load(tmp_path / "m")
+    assert not old.sign_fades_
     v_s = model.friction_scale_
-    q, dq, ddq = np.array([[0.3], [0.3]]), np.array([[0.0], [0.5 * v_s[0]]]), np.zeros((2, 1))
-    for fitted, sign in ((old, np.tanh(dq / v_s)), (model, np.tanh(dq / v_s) * (1 - np.exp(-0.5 * (dq / v_s) ** 2)))):
-        want = fitted.gp(0).predict(np.hstack([q, dq, ddq, sign]), return_std=False).reshape(2, 1)
-        np.testing.assert_allclose(fitted.predict(q, dq, ddq, return_std=False), want, rtol=1e-10, atol=1e-12)
+    q, dq, ddq = np.array([[0.3], [0.3], [0.3]]), np.array([[0.0], [0.5 * v_s[0]], [-v_s[0]]]), np.zeros((3, 1))
+    x = dq / v_s
+    plain, faded = np.tanh(x), np.tanh(x) * (1 - np.exp(-0.5 * x ** 2))
+    gp = model.gp(0)
+    want = (gp.predict(np.hstack([q, dq, ddq, plain]), return_std=False)
+            - gp.predict(np.hstack([q, dq, ddq, faded]), return_std=False)).reshape(3, 1)
+    got = old.predict(q, dq, ddq, return_std=False) - model.predict(q, dq, ddq, return_std=False)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert np.abs(want[1:]).max() > 0                    # the inputs differ off zero velocity
+    bare = mmgp.MultimodalGP(n_modes=1, max_sweeps=2, seed=0).fit(log)
+    assert not bare.sign_fades_                          # no robot: no band, no fade
 
 
 @pytest.mark.parametrize("window", [1, 3, 6])

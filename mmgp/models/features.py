@@ -181,14 +181,17 @@ def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = F
 
 
 def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
-                   friction_scale: np.ndarray | None = None, mean_basis: MeanBasis | None = None) -> Features:
-    """GP inputs [q, dq, ddq, sliding_sign(dq)(, tau_rbd)] and targets from checked logs."""
+                   friction_scale: np.ndarray | None = None, mean_basis: MeanBasis | None = None,
+                   sign_fades: bool = True) -> Features:
+    """GP inputs [q, dq, ddq, sliding_sign(dq)(, tau_rbd)] and targets from checked logs
+    (``sign_fades``: as :func:`state_features`)."""
     q = np.concatenate([lg.q for lg in logs])
     dq = np.concatenate([lg.dq for lg in logs])
     ddq = np.concatenate([lg.ddq for lg in logs])
     tau = np.concatenate([lg.tau for lg in logs])
     starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, mean_basis=mean_basis)
+    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, mean_basis=mean_basis,
+                       sign_fades=sign_fades)
     f.t = np.concatenate([lg.t for lg in logs])
     f.muted = dead_banded(tau)
     return f
@@ -199,7 +202,8 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
     """GP inputs and targets at states q, dq, ddq and torques tau (T, n), with the columns of
     ``mean_basis`` (None: no basis); ``friction_sign`` (+1 or -1, or per sample (T, 1)) replaces
     the smooth sign input (prediction on one sliding branch); ``sign_fades`` False: the smooth
-    sign without :func:`sliding_sign`'s fade at rest (models saved before format version 4)."""
+    sign without :func:`sliding_sign`'s fade at rest (without the friction band at rest, where
+    the position-only target reads the GP's branches at dq = 0; models before version 4)."""
     # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
     # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
     # step to the GP directly, so lengthscales can stay long.
