@@ -532,7 +532,7 @@ class MultimodalGP(BaseEstimator):
         model.hypers_ = [Hyper(z[f"lengthscale_{k}"], z[f"signal_var_{k}"], z[f"noise_var_{k}"]) for k in range(K)]
         model.basis_coef_ = [z.get(f"basis_coef_{k}") for k in range(K)]
         model.friction_scale_ = z.get("friction_scale")
-        model.sign_fades_ = bool(meta.get("sign_fades", False))        # versions 1 to 3: no fade
+        model.sign_fades_ = meta.get("sign_fades", False)        # versions 1 to 3: no fade
         model.inducing_ = [z.get(f"inducing_{k}") for k in range(K)]
         model.gp_weights_ = read_gp_weights(meta, z)
         # versions 1 and 2 conditioned every mode's exact GP on its (subset) support

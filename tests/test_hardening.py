@@ -82,6 +82,7 @@ MODEL_DAMAGES = {
     "array of another shape": (lambda d: _edit_npz(d / "model.npz", X_0=np.zeros((3, 2))), "X_0"),
     "array not finite": (lambda d: _edit_npz(d / "model.npz", noise_var_0=np.array([np.nan])), "noise_var_0"),
     "weights digest not a list": (lambda d: _edit_json(d / "model.json", gp_weights_sha256="ab"), "gp_weights_sha256"),
+    "sign fade not a boolean": (lambda d: _edit_json(d / "model.json", sign_fades="false"), "sign_fades"),
     "weights of another shape": (lambda d: _edit_npz(d / "model.npz", weights_0=np.zeros((1, 3))), "weights_0"),
 }
 

@@ -80,6 +80,8 @@ def _check_meta(meta: dict, path: Path) -> None:
     if digests is not None and (not isinstance(digests, list) or len(digests) != K or not all(
             d is None or isinstance(d, str) and len(d) == 64 for d in digests)):
         raise bad("gp_weights_sha256", f"a list of {K} SHA-256 hex digests or nulls")
+    if not isinstance(meta.get("sign_fades", False), bool):
+        raise bad("sign_fades", "true or false")
     from .features import MeanBasis
 
     try:
