@@ -321,6 +321,14 @@ def test_diagnoser_is_a_scikit_learn_estimator(cases, tmp_path):
     assert [(x["effect"], x["joint"]) for x in fitted.findings_] == [("coulomb_friction", "panda_joint4")]
 
 
+def _problem(d: Diagnoser, spec, rec):
+    """The diagnosis's Problem of a recording, as ``d`` prepares it."""
+    lp, n_full, smear = st.prepare_log(C.recording_to_log(rec), d._differentiator(), d.max_samples)
+    return st.build_problem(lp, C.nominal_robot(spec), n_full, smear, effects=d.effects, payload_links=d.payload_links,
+                            n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
+                            rest_factor=d.rest_factor)
+
+
 def test_diagnosis_learner_flags_nothing_on_logs_without_pushes(cases):
     """The learner whose flags the diagnosis' robust fit starts from abstains as training's does:
     on the push-free Panda logs (a payload, and nothing concealed) it flags under 1% of the
@@ -329,12 +337,8 @@ def test_diagnosis_learner_flags_nothing_on_logs_without_pushes(cases):
     for name in ("panda_payload", "panda_control"):
         spec, rec, truth = cases[name]
         assert not (rec.labels["disturbed"] == 1).any()
-        log, robot = C.recording_to_log(rec), C.nominal_robot(spec)
         d = Diagnoser()
-        lp, n_full, smear = st.prepare_log(log, d._differentiator(), d.max_samples)
-        prob = st.build_problem(lp, robot, n_full, smear, effects=d.effects, payload_links=d.payload_links,
-                                n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
-                                rest_factor=d.rest_factor)
+        prob = _problem(d, spec, rec)
         em = st.run_learner(prob, 1, max_points=d.em_points, seed=0)
         assert (em["p_disturbed"] > 0.5).mean() < 0.01, name
 
@@ -346,12 +350,7 @@ def test_the_learner_is_reused_only_for_the_same_residual_and_modes(cases, monke
     from mmgp.diagnosis import separation
 
     spec, rec, truth = cases["actuator_pushes_coulomb"]
-    log, robot = C.recording_to_log(rec), C.nominal_robot(spec)
-    d = Diagnoser()
-    lp, n_full, smear = st.prepare_log(log, d._differentiator(), d.max_samples)
-    prob = st.build_problem(lp, robot, n_full, smear, effects=d.effects, payload_links=d.payload_links,
-                            n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
-                            rest_factor=d.rest_factor)
+    prob = _problem(Diagnoser(), spec, rec)
     calls, real = [], separation.em_separate
 
     def counted(resid, *a, n_modes, **k):
