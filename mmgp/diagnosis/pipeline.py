@@ -389,8 +389,9 @@ class Diagnoser(BaseEstimator):
         _stage("mode switch")
         # the modes the multimodal learner (the inference `mmgp train` makes) sees in what the
         # physics leaves: where the switching fits start, and the gate of the push re-scan
+        resid = st.raw_residual(prob, phys)
         em = st.run_learner(prob, max(2, self.em_modes), max_points=self.em_points, seed=self.seed,
-                            previous=pushes.em, resid=st.raw_residual(prob, phys))
+                            previous=pushes.em, resid=resid)
         pushes = dataclasses.replace(pushes, em=em)
         e, coef, ctx = phys.residual(prob.r), phys.coefficients(), phys.ctx
         kw = dict(alpha=self.alpha, n_folds=self.mode_folds, max_samples=self.mode_max_samples)
@@ -406,7 +407,7 @@ class Diagnoser(BaseEstimator):
             again = find_mode_switch([(eff, C)], e, phys.w, prob.M, prob.t, prob.f_c, coef, ctx, init=ms.labels, **kw)
             ms = again or ms
         if ms is not None and self.separate in ("auto", "scan"):
-            pushes = st.rescan_pushes(prob, ms, phys, pushes, method=self.separate,
+            pushes = st.rescan_pushes(prob, ms, phys, pushes, resid, method=self.separate,
                                       **self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed"))
         laps("modes_s")
         return ms, pushes

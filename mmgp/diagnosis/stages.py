@@ -464,9 +464,10 @@ def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.
     return _nmse(sq, (M * use[:, None] > 0).sum(0), denom, ctx.joint_names)
 
 
-def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, method: str, push_alpha: float,
-                  em_modes: int, em_points: int, em_gate_peak: float, seed: int) -> Separation:
-    """Pushes looked for again once the mode switch ``ms`` explains its part of the residual.
+def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, resid: np.ndarray, *, method: str,
+                  push_alpha: float, em_modes: int, em_points: int, em_gate_peak: float, seed: int) -> Separation:
+    """Pushes looked for again once the mode switch ``ms`` explains its part of the residual
+    (``resid`` (T, n): the fitted physics' unfiltered residual, :func:`raw_residual`).
 
     The learner gating them then runs with at least two modes: with one it would call the rarer
     mode's samples disturbed and confirm everything; with two it learns both and confirms only
@@ -481,9 +482,8 @@ def rescan_pushes(prob: Problem, ms, phys: PhysicsFit, previous: Separation, *, 
     disturbed, found = scan(prob, e, friction_band(phys.coefficients(), phys.ctx), push_alpha=push_alpha, exclude=near)
     info, em = {**previous.info, **found}, previous.em
     if method == "auto" and disturbed.any():
-        # the learner of the mode switch, on the fitted physics' residual, is reused
-        em = run_learner(prob, max(2, em_modes), max_points=em_points, seed=seed, previous=em,
-                         resid=raw_residual(prob, phys))
+        # the learner of the mode switch, on the same residual, is reused
+        em = run_learner(prob, max(2, em_modes), max_points=em_points, seed=seed, previous=em, resid=resid)
         disturbed, gate = sep.gate_spans(disturbed, em["p_disturbed"], peaks=found["peaks"], strong=em_gate_peak)
         info = {**info, **sep.em_summary(em), **gate}
     return Separation(disturbed, info, em)

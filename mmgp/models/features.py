@@ -209,8 +209,10 @@ def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction
     # step to the GP directly, so lengthscales can stay long.
     parts = [q, dq, ddq]
     if friction_scale is not None:
-        smooth = sliding_sign(dq, friction_scale) if sign_fades else np.tanh(dq / friction_scale)
-        parts.append(smooth if friction_sign is None else np.full_like(dq, friction_sign))
+        if friction_sign is not None:
+            parts.append(np.full_like(dq, friction_sign))
+        else:
+            parts.append(sliding_sign(dq, friction_scale) if sign_fades else np.tanh(dq / friction_scale))
     X = np.concatenate(parts, axis=1)
     tau_rbd = None
     if robot is not None and semiparametric != "none":

@@ -375,9 +375,10 @@ def mode_emissions(fitter: ModeFitter, states: np.ndarray, params: SweepParams, 
         band = None
         if fitter.rest is not None:
             centre, half, bvar = fitter.friction_band(gp, coef, support)
+            blur = bvar * params.calib[k]
             bands.append(half)
-            blurs.append(bvar * params.calib[k])
-            band = (Y - centre, half, bvar * params.calib[k], fitter.rest)
+            blurs.append(blur)
+            band = (Y - centre, half, blur, fitter.rest)
             lu = at_rest_logpdf(lu, *band)
         lp = None
         if disturbance:
