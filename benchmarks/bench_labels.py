@@ -28,6 +28,7 @@ Sets of logs (``--sets``):
   ``issue29f``: a sixth draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
   ``issue29g``: a seventh draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
   ``issue29h``: an eighth draw (ISSUE29_DRAWS, 2026-11-29, twelfth session), levers and fresh arms.
+  ``issue29i``: a ninth draw (ISSUE29_DRAWS, 2026-11-29, thirteenth session), levers and fresh arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -175,6 +176,12 @@ ISSUE29_DRAWS = {
     "issue29h": ((11289989, 10518466, 17406202, 11120979, 14237356, 10206548, 10909312, 13113762, 11037261,
                   15327698, 17143110, 13478129), (18085318, 10583183, 14976966, 16891665),
                  (13548099, 17915839, 16932458), (12500929, 14883218, 17912043), (13398547,), (11453125,)),
+    # A ninth held-out draw (2026-11-29, thirteenth session, `secrets`, seeds not in this file),
+    # committed before anything was scored on it (the eighth was scored once on the faded friction
+    # input and its arms looked at since). Arms chosen as the fifth's, from a fresh pool.
+    "issue29i": ((17446662, 18776413, 15128774, 17011294, 15871985, 16329382, 13819755, 16501065, 11317809,
+                  15484451, 13030145, 14923941), (18969118, 11352592, 18604443, 17792603),
+                 (15062783, 13203337, 13438952), (16351609, 10915436, 16310769), (18496774,), (16382552,)),
 }
 _ISSUE29_KINDS = ("source", "source-free", "panda", "ur5", "holds", "holds-ur5")
 
