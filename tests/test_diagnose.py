@@ -323,10 +323,7 @@ def test_diagnoser_is_a_scikit_learn_estimator(cases, tmp_path):
 
 def _problem(d: Diagnoser, spec, rec):
     """The diagnosis's Problem of a recording, as ``d`` prepares it."""
-    lp, n_full, smear = st.prepare_log(C.recording_to_log(rec), d._differentiator(), d.max_samples)
-    return st.build_problem(lp, C.nominal_robot(spec), n_full, smear, effects=d.effects, payload_links=d.payload_links,
-                            n_folds=d.n_folds, sign_noise_factor=d.sign_noise_factor, lowpass=d.lowpass,
-                            rest_factor=d.rest_factor)
+    return d._problem(C.recording_to_log(rec), C.nominal_robot(spec))[1]
 
 
 def test_diagnosis_learner_flags_nothing_on_logs_without_pushes(cases):

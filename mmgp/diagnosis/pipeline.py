@@ -238,12 +238,18 @@ class Diagnoser(BaseEstimator):
     def _settings(self, *names) -> dict:
         return {k: getattr(self, k) for k in names}
 
-    def _diagnose(self, log, robot) -> DiagnosisResult:
-        laps = _Laps()
-        _stage("estimating derivatives, building the effect library")
+    def _problem(self, log, robot) -> tuple:
+        """The prepared log (derivatives, thinning) and the diagnosis's Problem built on it with
+        this estimator's settings (:func:`.stages.prepare_log`, :func:`.stages.build_problem`)."""
         log, n_full, smear_s = st.prepare_log(log, self._differentiator(), self.max_samples)
         prob = st.build_problem(log, robot, n_full, smear_s, effects=self.effects, payload_links=self.payload_links,
                                 n_folds=self.n_folds, **self._settings("sign_noise_factor", "lowpass", "rest_factor"))
+        return log, prob
+
+    def _diagnose(self, log, robot) -> DiagnosisResult:
+        laps = _Laps()
+        _stage("estimating derivatives, building the effect library")
+        log, prob = self._problem(log, robot)
         laps("context_s")
         push_kw = self._settings("push_alpha", "em_modes", "em_points", "em_gate_peak", "seed")
         # the learner's push flags are where the robust fit starts: with many long pushes a fit
