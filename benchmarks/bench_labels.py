@@ -29,6 +29,7 @@ Sets of logs (``--sets``):
   ``issue29g``: a seventh draw (ISSUE29_DRAWS, 2026-11-29, eleventh session), levers and fresh arms.
   ``issue29h``: an eighth draw (ISSUE29_DRAWS, 2026-11-29, twelfth session), levers and fresh arms.
   ``issue29i``: a ninth draw (ISSUE29_DRAWS, 2026-11-29, thirteenth session), levers and fresh arms.
+  ``issue29j``: a tenth draw (ISSUE29_DRAWS, 2026-11-29, fourteenth session), levers and fresh arms.
 Methods (``--methods``): ``mmgp`` (the default settings, the given seed), ``mmgp-rb`` (with
 ``rest_band`` on whatever the default: a stuck joint's friction band; the default since 2026-11-27),
 ``mmgp-noband`` (``rest_band`` off: the default before), ``mmgp[KEY=VALUE]`` (the defaults with one
@@ -182,6 +183,12 @@ ISSUE29_DRAWS = {
     "issue29i": ((17446662, 18776413, 15128774, 17011294, 15871985, 16329382, 13819755, 16501065, 11317809,
                   15484451, 13030145, 14923941), (18969118, 11352592, 18604443, 17792603),
                  (15062783, 13203337, 13438952), (16351609, 10915436, 16310769), (18496774,), (16382552,)),
+    # A tenth held-out draw (2026-11-29, fourteenth session, `secrets`, seeds not in this file),
+    # committed before anything was scored on it (the ninth was scored partly on the stuck-joint
+    # variant C and looked at since), for the EM from both starts. Arms chosen as the fifth's.
+    "issue29j": ((12822588, 17058478, 11272587, 18562686, 13016764, 18548359, 12427685, 12488502, 18153212,
+                  10347125, 18908243, 15219699), (13995283, 12469310, 11592680, 13437279),
+                 (14793181, 10647172, 18454585), (16904965, 10549321, 16144313), (14590599,), (11382909,)),
 }
 _ISSUE29_KINDS = ("source", "source-free", "panda", "ur5", "holds", "holds-ur5")
 
