@@ -203,19 +203,26 @@ class ModeFitter:
         gp = make_gp(len(members), method=s.gp_method, **kw)
         return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None, t=t)
 
-    def basis_coefficients(self, members: np.ndarray) -> np.ndarray:
+    @property
+    def stuck_aware(self) -> bool:
+        """Whether the basis fit leaves some joint's resting samples out (:meth:`basis_coefficients`):
+        only then does a start that counts them differ from one that does not."""
+        return bool(self.dry_cols) and bool(resting(self.rest).any())
+
+    def basis_coefficients(self, members: np.ndarray, stuck: bool = True) -> np.ndarray:
         """Robust basis coefficients (n, p) fitted on ``members``.
 
         With the friction band, a joint's resting samples are left out of its equations (a stuck
         joint's torque is anywhere in its band, not the basis at a near-zero smooth sign: counted,
-        holds at one edge of the band bend a payload's gravity column into the friction) and the
+        holds at one edge of the band bend a payload's gravity column into the friction; ``stuck``
+        False counts them, the "every-sample" start of :data:`mmgp.models.sem.START_NAMES`) and the
         dry-friction coefficients are kept non-negative (friction dissipates): a column whose
         coefficient comes out negative is dropped and the rest refitted."""
         fit = fit_shared_coefficients if self.settings.shared_basis else fit_basis_coefficients
         B, Y = self.basis[members], self.Y[members]
         if not self.dry_cols:
             return fit(B, Y)
-        mask = (~resting(self.rest[members])).astype(np.float64)
+        mask = (~resting(self.rest[members])).astype(np.float64) if stuck else None
         B = B.copy()
         for _ in range(len(self.dry_cols) + 1):
             coef = fit(B, Y, mask=mask)
@@ -227,7 +234,8 @@ class ModeFitter:
                 coef[j, self.dry_cols[c]] = 0.0
         return coef
 
-    def predictive(self, members: np.ndarray, hyper: Hyper | None, optimise: bool) -> tuple[np.ndarray, np.ndarray, ExactGP, np.ndarray, np.ndarray | None]:
+    def predictive(self, members: np.ndarray, hyper: Hyper | None, optimise: bool,
+                   stuck: bool = True) -> tuple[np.ndarray, np.ndarray, ExactGP, np.ndarray, np.ndarray | None]:
         """Mean and variance (T, n) of every sample under the model of ``members`` (out of
         sample: leave-window-out with a time axis, else LOO for the support), the GP, its
         support and the basis coefficients (None without a basis).
@@ -235,7 +243,7 @@ class ModeFitter:
         With a basis, the mode's mean is ``basis @ coef`` (fitted on all members) and the GP
         models what is left; the linear part extrapolates like the physics it encodes."""
         if self.basis is not None:
-            coef = self.basis_coefficients(members)
+            coef = self.basis_coefficients(members, stuck)
             offset = np.einsum("tjp,jp->tj", self.basis, coef)
             mean, var, gp, support = self._gp_predictive(self.Y - offset, members, hyper, optimise)
             return mean + offset, var, gp, support, coef

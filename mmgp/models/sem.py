@@ -73,6 +73,12 @@ from .mstep import (FitterSettings, ModeFitter, PushPrior, RestBand, SweepParams
 from .robust import basis_rank
 from .scan import scan_probability, sustained_offset_scan
 
+# The starts an EM may begin from (fit ``start``): the basis fitted without the joints' resting
+# samples (a stuck joint holds anything in its band) or on every sample. Neither is right on every
+# log (a long push can stall a joint, a hold can sit at its band's edge), so the estimator runs
+# both where they differ and keeps the one with the higher evidence (mmgp.models.dissipation).
+START_NAMES = ("stuck-aware", "every-sample")
+
 __all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
 
 
@@ -165,7 +171,7 @@ class MultimodalSEM:
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
             init_states: np.ndarray | None = None, basis: np.ndarray | None = None,
             rest: RestBand | None = None, muted: np.ndarray | None = None,
-            sweeps: bool | None = None) -> "MultimodalSEM":
+            sweeps: bool | None = None, start: str = "stuck-aware") -> "MultimodalSEM":
         """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
         (T, n, p): optional per-output linear regressors (e.g. the rigid-body inertial-parameter
@@ -175,6 +181,8 @@ class MultimodalSEM:
         ``muted``: (n,) bool, joints whose torque channel cannot tell a push (a dead band,
         :func:`mmgp.data.channels.dead_banded`): they neither vote for a push nor against one
         (their pushed density is their untouched one; not in the start's or the scan's tests).
+        ``start`` (without ``init_states``): how the start fits the basis, one of
+        :data:`START_NAMES` (:meth:`_initial_states`).
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
@@ -186,12 +194,16 @@ class MultimodalSEM:
         Mode order in ``last_sweep_`` is the sweep's internal one, not the final nominal-first
         order. ``longest_stretch_s_`` (K,): each mode's longest unbroken stretch (s, samples
         without ``t``) in the labels before short stretches are merged (``min_mode_s``);
-        ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``).
+        ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``); ``start_``: the
+        start's name (None from ``init_states``), ``other_start_``: whether the other start
+        of :data:`START_NAMES` would have begun elsewhere (the basis fit left resting samples out).
 
         One mode without the disturbance mode has no labels to learn: no sweeps are run
         (``n_sweeps_`` 0, ``trace_`` empty); one GP is fitted on every sample (:meth:`_fit_single`).
         ``sweeps=True`` runs them anyway (their log marginal scores K = 1 against K > 1).
         """
+        if start not in START_NAMES:
+            raise ValueError(f"start must be one of {START_NAMES}, got {start!r}")
         if sweeps is None:
             sweeps = not (self.n_modes == 1 and not self.disturbance and init_states is None)
         if not sweeps:
@@ -199,7 +211,7 @@ class MultimodalSEM:
         # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
         with limit_threads(1):
             return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis, rest=rest,
-                             muted=muted)
+                             muted=muted, start=start)
 
     def _fit_single(self, X, Y, *, t, starts, basis=None) -> "MultimodalSEM":
         """One GP on every sample, by :func:`mmgp.gp.sparse.make_gp`, hyperparameters by its own
@@ -218,6 +230,7 @@ class MultimodalSEM:
         self.p_enter_ = self.p_leave_ = 0.0
         self.trace_, self.converged_, self.n_sweeps_, self.last_sweep_ = [], True, 0, None
         self.abandoned_, self.labels_sweep_ = False, None
+        self.start_, self.other_start_ = None, False
         self.longest_stretch_s_ = longest_runs_s(self.labels_, fitter.t_axis, 1, starts)
         self.log_marginal_ = float("nan")
         self.disturbance_gain_ = 0.0
@@ -226,7 +239,8 @@ class MultimodalSEM:
         self.timings_ = {"init_s": 0.0, "gp_s": total, "estep_s": 0.0, "total_s": total}
         return self
 
-    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None, muted=None) -> "MultimodalSEM":
+    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None, muted=None,
+             start="stuck-aware") -> "MultimodalSEM":
         t0 = time.perf_counter()
         fitter, starts = self._prepare(X, Y, t, starts, basis, rest, muted)
         T, n = fitter.Y.shape
@@ -236,10 +250,12 @@ class MultimodalSEM:
         prior = PushPrior.in_seconds(fitter.t_axis, self.push_s, self.gap_s, self.push_prior_n, self.push_floor_z,
                                      self.min_push_s)
         init_hyper = None
+        self.other_start_ = fitter.stuck_aware
         if init_states is not None:
-            states = np.asarray(init_states, int).copy()
+            states, self.start_ = np.asarray(init_states, int).copy(), None
         else:
-            states, init_hyper = self._initial_states(fitter)
+            states, init_hyper = self._initial_states(fitter, start == "stuck-aware")
+            self.start_ = start
         params = SweepParams(hypers=[init_hyper] * K, stay=self.stay_prob if self.stay_prob is not None else 0.95,
                              p_enter=prior.p_enter, p_leave=prior.p_leave, sigma_d=fitter.Y.var(0) + 1e-12,
                              calib=np.ones((K, n)))
@@ -341,24 +357,25 @@ class MultimodalSEM:
         return (ModeFitter(X, Y, FitterSettings.of(self), t_axis=axis, basis=basis, band=rest, starts=starts,
                            muted=muted), starts)
 
-    def _initial_states(self, fitter: ModeFitter) -> tuple[np.ndarray, object]:
+    def _initial_states(self, fitter: ModeFitter, stuck: bool = True) -> tuple[np.ndarray, object]:
         """Start without labels (deterministic): one GP on everything, refitted (with the
         disturbance mode) on the ``start_trim`` fractions of the samples with the smallest
         largest-joint z-score; samples
         whose robust z-score (median / MAD per joint, per initial mode) exceeds ``start_z`` start
         disturbed; for K > 1, modes from k-means on time-smoothed residuals (modes persist in
-        time). Returns the states (T,) and the last GP's hyperparameters (the first warm start)."""
+        time). ``stuck`` False: the basis is fitted on the resting samples too (the "every-sample"
+        start). Returns the states (T,) and the last GP's hyperparameters (the first warm start)."""
         Y = fitter.Y
         T, n = Y.shape
         K = self.n_modes
         report(f"EM start: one GP on all {T} samples")
-        mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True)
+        mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True, stuck)
         # Trimming is against pushes; without a disturbance mode every sample belongs to a mode.
         for frac in (self.start_trim if self.disturbance else ()):
             report(f"EM start: GP refit on the {frac:.0%} most typical samples")
             z = (np.abs(Y - mean) / np.sqrt(var)).max(1)
             keep = np.sort(np.argsort(z, kind="stable")[:int(math.ceil(frac * T))])
-            mean, var, gp, _, _ = fitter.predictive(keep, gp.hyper_, True)
+            mean, var, gp, _, _ = fitter.predictive(keep, gp.hyper_, True, stuck)
         if K > 1:
             report(f"EM start: {K} initial modes from the smoothed residuals")
         modes = self._initial_modes(fitter, Y - mean) if K > 1 else np.zeros(T, int)
