@@ -370,10 +370,13 @@ def test_training_report_shows_each_fit_of_the_friction_check(trained, tmp_path)
     from mmgp.evaluation.reports import write_training_report
 
     rep = json.loads((trained / "report.json").read_text())
-    rep["dissipation"] = {"fits": [{"worst": 0.371, "p_value": 5.3e-6, "log_marginal": -102.5, "physical": False},
-                                   {"worst": 0.0, "p_value": 1.0, "log_marginal": 68.625, "physical": True}],
+    rep["dissipation"] = {"fits": [{"start": "stuck-aware", "worst": 0.371, "p_value": 5.3e-6, "log_marginal": -102.5,
+                                    "physical": False},
+                                   {"start": "swapped labels", "worst": 0.0, "p_value": 1.0, "log_marginal": 68.625,
+                                    "physical": True}],
                           "chosen": 1, "physical": True, "runner_up_gap": 171.125}
     page = read_page(write_training_report(tmp_path, rep))
     rows = page.table("dissipation")
-    assert [(number(r[0]), number(r[1]), r[2]["text"], number(r[3]), r[4]["text"], r[5]["text"]) for r in rows] == \
-        [(1, 0.371, "5.3e-06", -102.5, "no", "no"), (2, 0, "1", 68.625, "yes", "yes")]
+    assert [(number(r[0]), r[1]["text"], number(r[2]), r[3]["text"], number(r[4]), r[5]["text"], r[6]["text"])
+            for r in rows] == [(1, "stuck-aware", 0.371, "5.3e-06", -102.5, "no", "no"),
+                               (2, "swapped labels", 0, "1", 68.625, "yes", "yes")]

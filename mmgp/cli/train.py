@@ -87,17 +87,27 @@ def _flags_note(rep: dict) -> str:
 
 
 def _dissipation(rep: dict) -> str:
-    """What the friction check found, where it refitted (mmgp.models.dissipation)."""
+    """Which start the evidence kept, and what the friction check found where it refitted
+    (mmgp.models.dissipation)."""
     d = rep.get("dissipation") or {}
     fits = d.get("fits") or []
     if len(fits) < 2:
         return ""
-    first, kept = fits[0], fits[d["chosen"]]
+    kept = fits[d["chosen"]]
+    starts = [f for f in fits if f.get("start") != "swapped labels"]
+    refits = len(fits) - len(starts)
+    out = ""
+    if len(starts) > 1:
+        out += (" The EM ran from both starts (" + ", ".join(f"{f['start']} {f['log_marginal']:.1f}" for f in starts)
+                + " log marginal);")
+    if refits:
+        first = fits[0]
+        depth = f" (p {first['p_value']:.2g} for a dissipative model)" if "p_value" in first else ""
+        out += (f" Friction: the first fit's injected energy on {100 * first['worst']:.0f}% of the sliding samples"
+                f"{depth}; refitted {refits} time(s) from labels swapped there;")
     state = "dissipates" if d["physical"] else f"still injects energy on {100 * kept['worst']:.0f}% of sliding samples"
-    depth = f" (p {first['p_value']:.2g} for a dissipative model)" if "p_value" in first else ""
-    return (f" Friction: the first fit's injected energy on {100 * first['worst']:.0f}% of the sliding samples{depth}; "
-            f"refitted from labels swapped there ({len(fits)} fits), kept fit {d['chosen'] + 1}, whose friction "
-            f"{state} (log marginal {kept['log_marginal']:.1f}, the runner-up {d['runner_up_gap']:.1f} lower).")
+    return (out + f" kept fit {d['chosen'] + 1} ({kept.get('start', 'first')}), whose friction {state} "
+            f"(log marginal {kept['log_marginal']:.1f}, the runner-up {d['runner_up_gap']:.1f} lower).")
 
 
 def _selection(rep: dict) -> str:

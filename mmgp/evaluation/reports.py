@@ -87,12 +87,14 @@ def write_training_report(out_dir: str | Path, report: dict, evaluation: dict | 
         page.section("Friction dissipates", "Share of each fit's sliding samples where its friction pushes the joint "
                      "along (injects energy) by more than 2 standard deviations, and the probability that a "
                      "dissipative model's friction stays as deep in the wrong sign (Bonferroni over modes and "
-                     "joints; below 0.05 the fit injects energy). A fit that injects energy is refitted from labels "
-                     "swapped there, and the one that does not is kept (highest evidence).")
+                     "joints; below 0.05 the fit injects energy). Where the basis fit's two starts differ (resting "
+                     "samples left out, or counted) the EM runs from each; a fit that injects energy is refitted from "
+                     "labels swapped there; of the fits that dissipate the one with the highest evidence is kept.")
         chosen = report["dissipation"]["chosen"]
-        page.table(["fit", "worst share injecting", "p (depth test)", "log marginal likelihood", "dissipative", "kept"],
-                   [[i + 1, f["worst"], f"{f.get('p_value', float('nan')):.2g}", f["log_marginal"], f["physical"],
-                     i == chosen] for i, f in enumerate(fits)], kind="dissipation")
+        page.table(["fit", "start", "worst share injecting", "p (depth test)", "log marginal likelihood", "dissipative",
+                    "kept"],
+                   [[i + 1, f.get("start", ""), f["worst"], f"{f.get('p_value', float('nan')):.2g}", f["log_marginal"],
+                     f["physical"], i == chosen] for i, f in enumerate(fits)], kind="dissipation")
     _heldout_section(page, report.get("heldout"))
     page.section("Per-mode GPs").table(["mode", "joint", "signal std [N*m]", "noise std [N*m]", "support points"],
                                        _hyperparameter_rows(report), kind="hyperparameters")

@@ -12,9 +12,10 @@ which happens when the EM has taken a push that opposed the motion for friction 
 clean motion in that direction disturbed (a basin the labels then stay in).
 
 :func:`energy_check` measures how much of a fitted model's friction injects energy;
-:func:`fit_dissipative` runs the default start, checks it, and only where it injects energy runs
-the EM again from labels swapped where it does, keeping the model that does not (the evidence of
-every run is kept in the record).
+:func:`fit_dissipative` runs the EM from its start (and from the other start where the two
+differ: :data:`mmgp.models.sem.START_NAMES`), checks each fit, and only where none dissipates runs
+the EM again from labels swapped where it injects energy, keeping the dissipative model with the
+highest evidence (the evidence of every run is kept in the record).
 """
 from __future__ import annotations
 
