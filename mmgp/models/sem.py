@@ -22,31 +22,22 @@ With a ``basis`` (T, n, p) (e.g. a robot's inertial-parameter regressor), mode k
 samples every sweep (per joint, or one vector shared by all joints with ``shared_basis``).
 
 Temporal prior: a Markov chain with ``p(k_t = k_{t-1}) = pi`` (the source's "stay" prior) and,
-independently, a two-state chain on ``d`` (enter / leave a push). Both are re-estimated from
-the label sequences with Beta priors; the push chain's priors are durations in seconds
-(``push_s``, ``gap_s``, worth ``push_prior_n`` pushes), so a one-sample flicker costs the same
-at any sampling rate.
+independently, a two-state chain on ``d`` (enter / leave a push), re-estimated with Beta priors;
+the push chain's are durations in seconds (``push_s``, ``gap_s``, worth ``push_prior_n`` pushes).
 
-Start (no labels given): one GP on every sample, then GPs refitted on the ``start_trim``
-fractions of the samples it explains best (pushes inflate the noise of a GP fitted on
-everything, and the pushes then look like noise); samples whose robust
-z-score under the last fit exceeds ``start_z`` start disturbed; for K > 1, modes from k-means on
-time-smoothed residuals.
+Start (no labels given): one GP on every sample, refitted on the ``start_trim`` fractions of the
+samples it explains best (pushes inflate a GP's noise); samples whose robust z-score under the
+last fit exceeds ``start_z`` start disturbed; for K > 1, modes from k-means on smoothed residuals.
 
-E-step (each sweep, likelihoods computed from the current labels):
-- ``"mpm"`` (default): each sample's most probable state under the posterior marginals
-  (forward-backward). With the deterministic start and evenly spaced GP subsets the whole fit is
-  deterministic: the answer does not depend on the seed.
-- ``"ffbs"``: forward filtering / backward sampling draws the whole label sequence jointly from
-  the chain's posterior given the per-sample likelihoods; marginals from forward-backward.
-- ``"gibbs"``: single-site Gibbs as in the source, ``p(s_t | s_-t) ~ L_t(s) A(s_{t-1}, s)
-  A(s, s_{t+1})``, scanned as two interleaved blocks (even then odd sites: given their
-  neighbours they are conditionally independent, so the block update is exact Gibbs).
+E-step (each sweep, likelihoods from the current labels): ``"mpm"`` (default) each sample's most
+probable state under the posterior marginals (forward-backward; with the deterministic start and
+evenly spaced GP subsets the fit does not depend on the seed); ``"ffbs"`` draws the whole label
+sequence jointly (forward filtering / backward sampling); ``"gibbs"`` single-site Gibbs as in the
+source, scanned as two interleaved blocks (even then odd sites, exact given their neighbours).
 M-step: refit each mode's GP on its undisturbed samples (hyperparameters by the LOO objective,
 warm-started, on a schedule), Sigma_d and the transition probabilities.
-Final labels are posterior marginals averaged over the last sweeps. Abstention: when the
-disturbance states do not raise the chain's log marginal likelihood by more than their BIC price
-(``0.5 log T`` per parameter), nothing is flagged.
+Final labels: posterior marginals averaged over the last sweeps; nothing flagged when the
+disturbance states do not pay their BIC price (``0.5 log T`` per parameter) in log evidence.
 
 Pieces: :mod:`.mstep` (mode models, emissions, parameter updates), :mod:`.estep` (label
 sampling), :mod:`.convergence` (when to stop); this module runs the sweeps and keeps the result.
@@ -73,10 +64,8 @@ from .mstep import (FitterSettings, ModeFitter, PushPrior, RestBand, SweepParams
 from .robust import basis_rank
 from .scan import scan_probability, sustained_offset_scan
 
-# The starts an EM may begin from (fit ``start``): the basis fitted without the joints' resting
-# samples (a stuck joint holds anything in its band) or on every sample. Neither is right on every
-# log (a long push can stall a joint, a hold can sit at its band's edge), so the estimator runs
-# both where they differ and keeps the one with the higher evidence (mmgp.models.dissipation).
+# The EM's starts (fit ``start``): the start's basis fit without the joints' resting samples, or
+# on every sample; neither is right on every log (docs/training.md, "Two starts").
 START_NAMES = ("stuck-aware", "every-sample")
 
 __all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
@@ -114,8 +103,7 @@ class MultimodalSEM:
     abandon_short_modes : (K > 1, with ``t``) stop the sweeps early, unconverged, once one mode
         has held nowhere for ``min_mode_s`` seconds in one stretch (each sweep's most probable
         labels) for ``patience`` sweeps after ``min_sweeps`` (``abandoned_`` True): such a mode
-        is what :func:`select_n_modes` (which sets this) rejects, and a long log can keep one
-        for dozens of sweeps (benchmarks/README.md, "sixth session: tuning history").
+        is what :func:`select_n_modes` (which sets this) rejects.
     calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
     shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
         payload) instead of one per joint.
@@ -123,10 +111,8 @@ class MultimodalSEM:
         how many observed pushes that prior is worth.
     push_floor_z : a push is at least this many predictive standard deviations (Sigma_d floor).
     min_push_s : a push lasts at least this long, seconds: flagged stretches of the final labels
-        shorter than this are set undisturbed (needs ``t``). Pushes last 0.2-3 s; with Coulomb
-        friction and no push at all, short stretches at velocity reversals get flagged. Only the
-        final labels: applied after every E-step, the short first flags of light pushes joined
-        the GP's training samples, the GP learnt the push and the push vanished.
+        shorter than this are set undisturbed (needs ``t``; only the final labels: the short
+        first flags of light pushes must stay out of the GP's training samples).
     push_scan_s, push_scan_z : a push is a sustained offset: in the final labels, undisturbed
         samples whose residual (standardised, averaged over ``push_scan_s`` seconds of
         undisturbed samples) stands more than ``push_scan_z`` robust standard deviations of that
@@ -181,8 +167,7 @@ class MultimodalSEM:
         ``muted``: (n,) bool, joints whose torque channel cannot tell a push (a dead band,
         :func:`mmgp.data.channels.dead_banded`): they neither vote for a push nor against one
         (their pushed density is their untouched one; not in the start's or the scan's tests).
-        ``start`` (without ``init_states``): how the start fits the basis, one of
-        :data:`START_NAMES` (:meth:`_initial_states`).
+        ``start`` (without ``init_states``): one of :data:`START_NAMES` (:meth:`_initial_states`).
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
@@ -194,9 +179,8 @@ class MultimodalSEM:
         Mode order in ``last_sweep_`` is the sweep's internal one, not the final nominal-first
         order. ``longest_stretch_s_`` (K,): each mode's longest unbroken stretch (s, samples
         without ``t``) in the labels before short stretches are merged (``min_mode_s``);
-        ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``); ``start_``: the
-        start's name (None from ``init_states``), ``other_start_``: whether the other start
-        of :data:`START_NAMES` would have begun elsewhere (the basis fit left resting samples out).
+        ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``); ``start_`` (None
+        from ``init_states``); ``other_start_``: whether the other of :data:`START_NAMES` differs.
 
         One mode without the disturbance mode has no labels to learn: no sweeps are run
         (``n_sweeps_`` 0, ``trace_`` empty); one GP is fitted on every sample (:meth:`_fit_single`).
