@@ -178,6 +178,9 @@ def test_depth_test_finds_a_region_whose_friction_injects_energy():
     assert depth_p_value(z, effective_sample_size(z)) < 1e-3
 
 
+START_LABEL = {"stuck-aware": 0, "every-sample": 1}
+
+
 class _StubSEM:
     """What fit_dissipative reads off a fitted MultimodalSEM, with a chosen evidence."""
 
@@ -191,7 +194,11 @@ class _StubSEM:
         self.other_start_ = True
         self.log_marginal_ = self.evidence[self.start_ or "swapped labels"]
         self.trace_, self.labels_, self.disturbed_ = [object()], np.zeros(len(Y), int), np.zeros(len(Y), bool)
+        self.start_states_ = self.start_states(X, Y, start=start)
         return self
+
+    def start_states(self, X, Y, *, start="stuck-aware", **kw):
+        return np.full(len(Y), START_LABEL[start])
 
 
 def test_the_kept_fit_is_the_best_evidence_among_the_dissipative_ones(monkeypatch):
@@ -218,6 +225,10 @@ def test_the_kept_fit_is_the_best_evidence_among_the_dissipative_ones(monkeypatc
         expected = max(kept, key=evidence.get) if kept else "every-sample"   # the larger p-value
         assert sem.start_ == expected and record["fits"][record["chosen"]]["start"] == expected
         assert record["runner_up_gap"] == evidence[expected] - evidence[next(s for s in starts if s != expected)]
+    # Both starts with the same labels: the second EM is not run.
+    monkeypatch.setitem(START_LABEL, "every-sample", 0)
+    sem, record = dissipation.fit_dissipative(lambda: _StubSEM(evidence), X, Y, REV)
+    assert len(record["fits"]) == 1 and record["other_start_same_labels"] is True
 
 
 def test_a_long_push_that_the_stuck_aware_start_gives_to_the_payload_is_found_from_the_other_start(tmp_path):

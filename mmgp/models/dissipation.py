@@ -228,25 +228,28 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
                     restarts: int = MAX_RESTARTS, **fit_kw):
     """Fit ``make_sem()`` (a MultimodalSEM; ``fit_kw`` its fit's keywords) from its own start, or
     take ``first`` already fitted, and, where the other start of
-    :data:`mmgp.models.sem.START_NAMES` begins elsewhere (``other_start_``), from that one too.
+    :data:`mmgp.models.sem.START_NAMES` begins from other labels, from that one too.
     While no fit's friction dissipates (:func:`energy_check`), at most ``restarts`` times: fit
     again from the last fit's labels with the disturbed and undisturbed labels swapped where its
     friction injects energy (:func:`injecting_samples`: where a push that opposed the motion was
     taken for friction, the clean motion was called disturbed). Returns the model with the
     highest log marginal likelihood among those that do not inject energy (where none qualifies,
     the one whose check's p-value is largest) and a record of each fit (its start, check and log
-    marginal likelihood), the choice and the runner-up's gap in log evidence."""
+    marginal likelihood), the choice, the runner-up's gap in log evidence and
+    ``other_start_same_labels`` (None: no other start; True: its labels were the first's, not run)."""
     from .sem import START_NAMES
 
     basis = fit_kw.get("basis")
     X = np.asarray(X, dtype=np.float64)
     if first is None:
         first = make_sem().fit(X, Y, **fit_kw)
-    fits = [first]
+    fits, same_start = [first], None
     if first.disturbance and len(first.trace_) and first.other_start_ and first.start_ in START_NAMES:
         other = next(name for name in START_NAMES if name != first.start_)
-        report(f"EM again from the {other} start: the labels may settle elsewhere; the evidence decides")
-        fits.append(make_sem().fit(X, Y, start=other, **fit_kw))
+        same_start = bool(np.array_equal(make_sem().start_states(X, Y, start=other, **fit_kw), first.start_states_))
+        if not same_start:     # the same start labels: the same sweeps, up to the start's warm start
+            report(f"EM again from the {other} start: the labels may settle elsewhere; the evidence decides")
+            fits.append(make_sem().fit(X, Y, start=other, **fit_kw))
     report("friction check: does the learnt friction dissipate?")
     checks = [energy_check(fit, X, basis, rev) for fit in fits]
     n_starts = len(fits)
@@ -266,7 +269,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
     best = max(pool, key=lambda i: evidence[i])
     record = {"fits": [{"start": m.start_ or "swapped labels", "log_marginal": e, **c}
                        for m, e, c in zip(fits, evidence, checks)], "chosen": best,
-              "physical": checks[best]["physical"]}
+              "physical": checks[best]["physical"], "other_start_same_labels": same_start}
     others = [evidence[i] for i in range(len(fits)) if i != best]
     if others:
         record["runner_up_gap"] = evidence[best] - max(others)

@@ -118,14 +118,9 @@ class MultimodalSEM:
         undisturbed samples) stands more than ``push_scan_z`` robust standard deviations of that
         average off on some joint are flagged too (:mod:`.scan`; needs ``t``; 0 s: off). Light
         pushes 1-3 predictive standard deviations off for 0.2-2 s, which no single sample shows.
-    rest_band : with ``rest`` in ``fit`` (a :class:`.mstep.RestBand`), a joint at rest may be
-        stuck and hold any torque within its friction band: its undisturbed density is, with
-        the rest weight, uniform over the band (the model's own friction,
-        :meth:`.mstep.ModeFitter.friction_band`) blurred by the predictive spread
-        (:func:`.mstep.at_rest_logpdf`), and an unbroken hold votes once, for the band or for a
-        push (:func:`.mstep.hold_weights`); the scan does not average where the band is wider
-        than that spread. Without it stuck holds and velocity reversals are taken for pushes
-        (docs/training.md, "A stuck joint holds any torque in its friction band").
+    rest_band : with ``rest`` in ``fit`` (a :class:`.mstep.RestBand`), a joint at rest may hold
+        any torque within its friction band (:meth:`.mstep.ModeFitter.friction_band`, blurred:
+        :func:`.mstep.at_rest_logpdf`; a hold votes once: :func:`.mstep.hold_weights`; docs/training.md).
     start_trim : fractions of the samples kept by the successive refits of the start.
     start_z : robust z-score over which a sample starts disturbed.
     abstain : flag nothing when the disturbance states do not pay their BIC price.
@@ -162,8 +157,7 @@ class MultimodalSEM:
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
         (T, n, p): optional per-output linear regressors (e.g. the rigid-body inertial-parameter
         regressor); each mode then has the mean ``basis @ coef_[k]`` (coef (n, p)) under its GP.
-        ``rest``: where joints rest and where their velocity signs are (a
-        :class:`.mstep.RestBand`), for the friction band at rest (``rest_band``); None: no band.
+        ``rest``: a :class:`.mstep.RestBand` for the friction band at rest (None: no band).
         ``muted``: (n,) bool, joints whose torque channel cannot tell a push (a dead band,
         :func:`mmgp.data.channels.dead_banded`): they neither vote for a push nor against one
         (their pushed density is their untouched one; not in the start's or the scan's tests).
@@ -175,16 +169,14 @@ class MultimodalSEM:
         ``coef_`` (K basis coefficient arrays (n, p), or None each), ``members_`` (K index
         arrays: the samples each mode's coefficients and GP learnt from), ``basis_rank_``, and
         ``last_sweep_`` (the last sweep's per-mode means/variances (T, n), log-likelihoods (T, S),
-        calibration, sigma_d and states: for diagnosing where errors sit; None without sweeps).
-        Mode order in ``last_sweep_`` is the sweep's internal one, not the final nominal-first
-        order. ``longest_stretch_s_`` (K,): each mode's longest unbroken stretch (s, samples
-        without ``t``) in the labels before short stretches are merged (``min_mode_s``);
+        calibration, sigma_d, states, in the sweep's mode order; None without sweeps),
+        ``longest_stretch_s_`` (K,): each mode's longest stretch before merging (``min_mode_s``);
         ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``); ``start_`` (None
-        from ``init_states``); ``other_start_``: whether the other of :data:`START_NAMES` differs.
+        from ``init_states``), ``start_states_`` (T,); ``other_start_``: whether the other of
+        :data:`START_NAMES` fits the basis differently.
 
-        One mode without the disturbance mode has no labels to learn: no sweeps are run
-        (``n_sweeps_`` 0, ``trace_`` empty); one GP is fitted on every sample (:meth:`_fit_single`).
-        ``sweeps=True`` runs them anyway (their log marginal scores K = 1 against K > 1).
+        One mode without the disturbance mode: no sweeps (one GP on every sample,
+        :meth:`_fit_single`) unless ``sweeps=True`` (their log marginal scores K = 1 against K > 1).
         """
         if start not in START_NAMES:
             raise ValueError(f"start must be one of {START_NAMES}, got {start!r}")
@@ -240,6 +232,7 @@ class MultimodalSEM:
         else:
             states, init_hyper = self._initial_states(fitter, start == "stuck-aware")
             self.start_ = start
+        self.start_states_ = states.copy()
         params = SweepParams(hypers=[init_hyper] * K, stay=self.stay_prob if self.stay_prob is not None else 0.95,
                              p_enter=prior.p_enter, p_leave=prior.p_leave, sigma_d=fitter.Y.var(0) + 1e-12,
                              calib=np.ones((K, n)))
@@ -297,6 +290,13 @@ class MultimodalSEM:
         timings["total_s"] = time.perf_counter() - t0
         self.timings_ = timings
         return self
+
+    def start_states(self, X, Y, *, t=None, starts=(0,), basis=None, rest=None, muted=None,
+                     start: str = "stuck-aware") -> np.ndarray:
+        """(T,) the states the EM would start from (``fit``'s arguments), without running it."""
+        with limit_threads(1):
+            fitter, _ = self._prepare(X, Y, t, starts, basis, rest, muted)
+            return self._initial_states(fitter, start == "stuck-aware")[0]
 
     def _fleeting(self, probs: np.ndarray, K: int, t: np.ndarray | None, starts) -> bool:
         """``abandon_short_modes``: some mode of this sweep's most probable labels (marginals
