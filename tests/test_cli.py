@@ -300,3 +300,21 @@ def test_summary_names_the_sweep_kept_when_the_sweeps_cycle():
     assert "did not converge" in note and "sweep 1's" in note and "86375.6" in note and "23090.0" in note
     # what follows is about the kept sweep (7 in the disturbance state), not the last (432)
     assert "held 7 samples" in note and "none is flagged" in note
+
+
+def test_train_message_names_the_starts_and_a_better_fit_that_injects_energy():
+    from mmgp.cli.train import _dissipation
+
+    rep = {"dissipation": {"fits": [
+        {"start": "stuck-aware", "log_marginal": 18075.7, "worst": 0.21, "p_value": 0.001, "physical": False},
+        {"start": "every-sample", "log_marginal": 14919.8, "worst": 0.15, "p_value": 0.002, "physical": False},
+        {"start": "swapped labels", "log_marginal": 12087.7, "worst": 0.01, "p_value": 0.6, "physical": True}],
+        "chosen": 2, "physical": True, "runner_up_gap": 12087.7 - 18075.7}}
+    text = _dissipation(rep)
+    assert "both starts (stuck-aware 18075.7, every-sample 14919.8 log marginal)" in text
+    assert "refitted 1 time(s)" in text and "kept fit 3 (swapped labels)" in text
+    assert "a fit whose friction injects energy 5988.0 higher, not kept" in text
+    rep["dissipation"]["fits"] = rep["dissipation"]["fits"][1:]
+    rep["dissipation"].update(chosen=0, runner_up_gap=14919.8 - 12087.7)
+    rep["dissipation"]["fits"][0]["physical"] = True
+    assert _dissipation(rep).endswith("(log marginal 14919.8, the runner-up 2832.1 lower).")

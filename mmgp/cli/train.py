@@ -106,8 +106,11 @@ def _dissipation(rep: dict) -> str:
         out += (f" Friction: the first fit's injected energy on {100 * first['worst']:.0f}% of the sliding samples"
                 f"{depth}; refitted {refits} time(s) from labels swapped there;")
     state = "dissipates" if d["physical"] else f"still injects energy on {100 * kept['worst']:.0f}% of sliding samples"
+    gap = d["runner_up_gap"]
+    runner_up = (f"the runner-up {gap:.1f} lower" if gap >= 0 else
+                 f"a fit whose friction injects energy {-gap:.1f} higher, not kept")
     return (out + f" kept fit {d['chosen'] + 1} ({kept.get('start', 'first')}), whose friction {state} "
-            f"(log marginal {kept['log_marginal']:.1f}, the runner-up {d['runner_up_gap']:.1f} lower).")
+            f"(log marginal {kept['log_marginal']:.1f}, {runner_up}).")
 
 
 def _selection(rep: dict) -> str:
