@@ -10,6 +10,7 @@ import numpy as np
 
 from mmgp.gp.exact import ExactGP
 from mmgp.models.dissipation import VelocityReversal, energy_check, injecting_samples, odd_part
+from mmgp.models.mstep import Start
 from mmgp.physics.robot import RobotModel
 
 
@@ -190,15 +191,16 @@ class _StubSEM:
         self.evidence = evidence
 
     def fit(self, X, Y, *, start="stuck-aware", init_states=None, **kw):
-        self.start_ = None if init_states is not None else start
+        begun = start if isinstance(start, Start) else self.begin(X, Y, start=start)
+        self.start_ = None if init_states is not None else begun.name
         self.other_start_ = True
         self.log_marginal_ = self.evidence[self.start_ or "swapped labels"]
         self.trace_, self.labels_, self.disturbed_ = [object()], np.zeros(len(Y), int), np.zeros(len(Y), bool)
-        self.start_states_ = self.start_states(X, Y, start=start)
+        self.start_states_ = begun.states
         return self
 
-    def start_states(self, X, Y, *, start="stuck-aware", **kw):
-        return np.full(len(Y), START_LABEL[start])
+    def begin(self, X, Y, *, start="stuck-aware", **kw):
+        return Start(start, np.full(len(Y), START_LABEL[start]), None)
 
 
 def test_the_kept_fit_is_the_best_evidence_among_the_dissipative_ones(monkeypatch):

@@ -13,7 +13,7 @@ clean motion in that direction disturbed (a basin the labels then stay in).
 
 :func:`energy_check` measures how much of a fitted model's friction injects energy;
 :func:`fit_dissipative` runs the EM from its start (and from the other start where the two
-differ: :data:`mmgp.models.sem.START_NAMES`), checks each fit, and only where none dissipates runs
+differ: :data:`mmgp.models.mstep.START_NAMES`), checks each fit, and only where none dissipates runs
 the EM again from labels swapped where it injects energy, keeping the dissipative model with the
 highest evidence (the evidence of every run is kept in the record).
 """
@@ -27,7 +27,7 @@ import numpy as np
 from ..physics.context import smooth_sign_scale
 from ..progress import report
 from ..gp.exact import ExactGP
-from .mstep import evenly_spaced
+from .mstep import START_NAMES, evenly_spaced
 
 # Restarts from swapped labels while the friction still injects energy (each is one more EM run).
 MAX_RESTARTS = 2
@@ -228,7 +228,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
                     restarts: int = MAX_RESTARTS, **fit_kw):
     """Fit ``make_sem()`` (a MultimodalSEM; ``fit_kw`` its fit's keywords) from its own start, or
     take ``first`` already fitted, and, where the other start of
-    :data:`mmgp.models.sem.START_NAMES` begins from other labels, from that one too.
+    :data:`mmgp.models.mstep.START_NAMES` begins from other labels, from that one too.
     While no fit's friction dissipates (:func:`energy_check`), at most ``restarts`` times: fit
     again from the last fit's labels with the disturbed and undisturbed labels swapped where its
     friction injects energy (:func:`injecting_samples`: where a push that opposed the motion was
@@ -237,24 +237,22 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
     the one whose check's p-value is largest) and a record of each fit (its start, check and log
     marginal likelihood), the choice, the runner-up's gap in log evidence and
     ``other_start_same_labels`` (None: no other start; True: its labels were the first's, not run)."""
-    from .sem import START_NAMES
-
     basis = fit_kw.get("basis")
     X = np.asarray(X, dtype=np.float64)
     if first is None:
         first = make_sem().fit(X, Y, **fit_kw)
     fits, same_start = [first], None
-    if first.disturbance and len(first.trace_) and first.other_start_ and first.start_ in START_NAMES:
-        other = next(name for name in START_NAMES if name != first.start_)
-        same_start = bool(np.array_equal(make_sem().start_states(X, Y, start=other, **fit_kw), first.start_states_))
+    swept = first.disturbance and len(first.trace_)      # labels learnt by sweeps (else nothing to redo)
+    if swept and first.other_start_ and first.start_ in START_NAMES:
+        other = make_sem().begin(X, Y, start=next(n for n in START_NAMES if n != first.start_), **fit_kw)
+        same_start = bool(np.array_equal(other.states, first.start_states_))
         if not same_start:     # the same start labels: the same sweeps, up to the start's warm start
-            report(f"EM again from the {other} start: the labels may settle elsewhere; the evidence decides")
+            report(f"EM again from the {other.name} start: the labels may settle elsewhere; the evidence decides")
             fits.append(make_sem().fit(X, Y, start=other, **fit_kw))
     report("friction check: does the learnt friction dissipate?")
     checks = [energy_check(fit, X, basis, rev) for fit in fits]
     n_starts = len(fits)
-    while (first.disturbance and len(first.trace_) and not any(c["physical"] for c in checks)
-           and len(fits) < n_starts + restarts):
+    while swept and not any(c["physical"] for c in checks) and len(fits) < n_starts + restarts:
         last = fits[-1]
         flip = injecting_samples(last, X, basis, rev)
         if not flip.any():

@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 from scipy.special import log_ndtr, logsumexp
@@ -153,6 +153,18 @@ class FitterSettings:
         return cls(**{f.name: getattr(settings, f.name) for f in fields(cls)})
 
 
+# The EM's starts (fit ``start``): the start's basis fit without the joints' resting samples, or
+# on every sample; neither is right on every log (docs/training.md, "Two starts").
+START_NAMES = ("stuck-aware", "every-sample")
+
+
+class Start(NamedTuple):
+    """A start computed ahead (:meth:`mmgp.models.sem.MultimodalSEM.begin`): name, states (T,), the GP's hyper."""
+    name: str
+    states: np.ndarray
+    hyper: object
+
+
 class ModeFitter:
     """One mode's model on given member samples and every sample's predictive under it.
 
@@ -215,7 +227,7 @@ class ModeFitter:
         With the friction band, a joint's resting samples are left out of its equations (a stuck
         joint's torque is anywhere in its band, not the basis at a near-zero smooth sign: counted,
         holds at one edge of the band bend a payload's gravity column into the friction; ``stuck``
-        False counts them, the "every-sample" start of :data:`mmgp.models.sem.START_NAMES`) and the
+        False counts them, the "every-sample" start of :data:`START_NAMES`) and the
         dry-friction coefficients are kept non-negative (friction dissipates): a column whose
         coefficient comes out negative is dropped and the rest refitted."""
         fit = fit_shared_coefficients if self.settings.shared_basis else fit_basis_coefficients

@@ -59,14 +59,10 @@ from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import (chain_matrix, disturbed_given_modes, e_step, longest_runs_s, merge_short_runs,
                     runs_shorter_than)
 from .hmm import forward_backward
-from .mstep import (FitterSettings, ModeFitter, PushPrior, RestBand, SweepParams, evenly_spaced, mode_emissions,
-                    update_parameters)
+from .mstep import (START_NAMES, FitterSettings, ModeFitter, PushPrior, RestBand, Start, SweepParams, evenly_spaced,
+                    mode_emissions, update_parameters)
 from .robust import basis_rank
 from .scan import scan_probability, sustained_offset_scan
-
-# The EM's starts (fit ``start``): the start's basis fit without the joints' resting samples, or
-# on every sample; neither is right on every log (docs/training.md, "Two starts").
-START_NAMES = ("stuck-aware", "every-sample")
 
 __all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
 
@@ -159,26 +155,23 @@ class MultimodalSEM:
         regressor); each mode then has the mean ``basis @ coef_[k]`` (coef (n, p)) under its GP.
         ``rest``: a :class:`.mstep.RestBand` for the friction band at rest (None: no band).
         ``muted``: (n,) bool, joints whose torque channel cannot tell a push (a dead band,
-        :func:`mmgp.data.channels.dead_banded`): they neither vote for a push nor against one
-        (their pushed density is their untouched one; not in the start's or the scan's tests).
-        ``start`` (without ``init_states``): one of :data:`START_NAMES` (:meth:`_initial_states`).
+        :func:`mmgp.data.channels.dead_banded`): no vote for or against a push, nor in the start or scan.
+        ``start`` (without ``init_states``): one of :data:`START_NAMES`, or a :class:`Start`.
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
         ``gps_`` (K ExactGPs), ``sigma_d_`` (n,), ``stay_prob_``, ``p_enter_``, ``p_leave_``,
-        ``trace_`` (list of SweepRecord), ``converged_``, ``n_sweeps_``, ``timings_``,
-        ``coef_`` (K basis coefficient arrays (n, p), or None each), ``members_`` (K index
-        arrays: the samples each mode's coefficients and GP learnt from), ``basis_rank_``, and
+        ``trace_`` (list of SweepRecord), ``converged_``, ``n_sweeps_``, ``timings_``, ``coef_`` (K
+        (n, p) or None), ``members_`` (K index arrays the modes learnt from), ``basis_rank_``,
         ``last_sweep_`` (the last sweep's per-mode means/variances (T, n), log-likelihoods (T, S),
         calibration, sigma_d, states, in the sweep's mode order; None without sweeps),
         ``longest_stretch_s_`` (K,): each mode's longest stretch before merging (``min_mode_s``);
-        ``abandoned_``: the sweeps were stopped early (``abandon_short_modes``); ``start_`` (None
-        from ``init_states``), ``start_states_`` (T,); ``other_start_``: whether the other of
-        :data:`START_NAMES` fits the basis differently.
+        ``abandoned_`` (``abandon_short_modes``); ``start_`` (None from ``init_states``), ``start_states_``
+        (T,), ``other_start_``: whether the other of :data:`START_NAMES` fits the basis differently.
 
         One mode without the disturbance mode: no sweeps (one GP on every sample,
         :meth:`_fit_single`) unless ``sweeps=True`` (their log marginal scores K = 1 against K > 1).
         """
-        if start not in START_NAMES:
+        if getattr(start, "name", start) not in START_NAMES:
             raise ValueError(f"start must be one of {START_NAMES}, got {start!r}")
         if sweeps is None:
             sweeps = not (self.n_modes == 1 and not self.disturbance and init_states is None)
@@ -230,8 +223,9 @@ class MultimodalSEM:
         if init_states is not None:
             states, self.start_ = np.asarray(init_states, int).copy(), None
         else:
-            states, init_hyper = self._initial_states(fitter, start == "stuck-aware")
-            self.start_ = start
+            begun = (start if isinstance(start, Start) else
+                     Start(start, *self._initial_states(fitter, start == "stuck-aware")))
+            states, init_hyper, self.start_ = begun.states.copy(), begun.hyper, begun.name
         self.start_states_ = states.copy()
         params = SweepParams(hypers=[init_hyper] * K, stay=self.stay_prob if self.stay_prob is not None else 0.95,
                              p_enter=prior.p_enter, p_leave=prior.p_leave, sigma_d=fitter.Y.var(0) + 1e-12,
@@ -291,12 +285,13 @@ class MultimodalSEM:
         self.timings_ = timings
         return self
 
-    def start_states(self, X, Y, *, t=None, starts=(0,), basis=None, rest=None, muted=None,
-                     start: str = "stuck-aware") -> np.ndarray:
-        """(T,) the states the EM would start from (``fit``'s arguments), without running it."""
+    def begin(self, X, Y, *, t=None, starts=(0,), basis=None, rest=None, muted=None,
+              start: str = "stuck-aware") -> Start:
+        """The start ``start`` the EM would begin from (``fit``'s arguments), without the sweeps;
+        ``fit(..., start=<this>)`` begins there without computing it again."""
         with limit_threads(1):
             fitter, _ = self._prepare(X, Y, t, starts, basis, rest, muted)
-            return self._initial_states(fitter, start == "stuck-aware")[0]
+            return Start(start, *self._initial_states(fitter, start == "stuck-aware"))
 
     def _fleeting(self, probs: np.ndarray, K: int, t: np.ndarray | None, starts) -> bool:
         """``abandon_short_modes``: some mode of this sweep's most probable labels (marginals
