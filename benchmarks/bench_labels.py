@@ -469,23 +469,22 @@ def oracle(case: Case, prep: Prepared, seed: int) -> Outcome:
     basis = dataclasses.replace(basis, friction=True) if band and basis is not None else basis
     feats = build_features(logs, semi, prep.robot, fscale, mean_basis=basis)
     K = case.n_modes
-    kw = cfg._sem_settings(basis)
-    kw.update(windows_for_duration(logs[0].t[-1] - logs[0].t[0], exclusion_s=cfg.exclusion_s, block_s=cfg.block_s,
-                                   mode_smoothing_s=cfg.mode_smoothing_s, min_push_s=cfg.min_push_s,
-                                   min_mode_s=cfg.min_mode_s, push_scan_s=cfg.push_scan_s))
-    sem = MultimodalSEM(n_modes=K, **kw)
+    shortened = windows_for_duration(logs[0].t[-1] - logs[0].t[0], exclusion_s=cfg.exclusion_s, block_s=cfg.block_s,
+                                     mode_smoothing_s=cfg.mode_smoothing_s, min_push_s=cfg.min_push_s,
+                                     min_mode_s=cfg.min_mode_s, push_scan_s=cfg.push_scan_s)
+    sem = MultimodalSEM(K, cfg._em_settings(basis, shortened), seed=seed)
+    s = sem.settings
     rest = feats.rest_band(basis, fscale) if band else None
     fitter, starts = sem._prepare(feats.X, feats.Y, feats.t, feats.starts, feats.basis, rest, feats.muted)
     if len(case.mode) != len(feats.Y):
         raise ValueError(f"{case.name}: truth has {len(case.mode)} samples, features {len(feats.Y)}")
     modes = np.unique(case.mode, return_inverse=True)[1]
     states = modes + K * (~case.clean)
-    prior = PushPrior.in_seconds(fitter.t_axis, sem.push_s, sem.gap_s, sem.push_prior_n, sem.push_floor_z,
-                                 sem.min_push_s)
+    prior = PushPrior.in_seconds(fitter.t_axis, s.push_s, s.gap_s, s.push_prior_n, s.push_floor_z, s.min_push_s)
     params = SweepParams(hypers=[None] * K, stay=0.95, p_enter=prior.p_enter, p_leave=prior.p_leave,
                          sigma_d=fitter.Y.var(0) + 1e-12, calib=np.ones((K, fitter.Y.shape[1])))
     em = mode_emissions(fitter, states, params, K, True, optimise=True)
-    update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=True, calibrate=sem.calibrate,
+    update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=True, calibrate=s.calibrate,
                       learn_stay=True, starts=starts, prior=prior, rest=fitter.rest)
     em = mode_emissions(fitter, states, params, K, True, optimise=False)
     A = chain_matrix(K, True, params.stay, params.p_enter, params.p_leave)

@@ -25,6 +25,7 @@ from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
 from .models.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
 from .models.report import labels_frame, training_report
+from .models.settings import EMSettings
 
 MODEL_FORMAT = "mmgp-model"
 MODEL_VERSION = 4
@@ -36,6 +37,9 @@ _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_swe
 _NON_NEGATIVE = ("exclusion_s", "block_s", "min_push_s", "min_mode_s", "push_scan_s")
 _POSITIVE = ("push_s", "gap_s")
 _BOOL = ("disturbance", "friction_feature", "calibrate", "ard", "abstain")
+
+
+_EM = EMSettings()      # the EM's settings are declared there; the estimator's defaults are its
 
 
 class MultimodalGP(BaseEstimator):
@@ -176,14 +180,17 @@ class MultimodalGP(BaseEstimator):
     :class:`mmgp.models.sem.MultimodalSEM`, with its trace and last sweep).
     """
 
-    def __init__(self, n_modes=1, disturbance=True, robot=None, *, estep="mpm", stay_prob=None,
-                 rate_hz=None, diff_window_s=None, semiparametric="residual", exclusion_s=1.0, block_s=2.0,
-                 friction_feature=True, mean_basis="auto", max_support=500, final_support=None,
-                 gp_method="auto", n_inducing=2000, fit_points=2000, fit_iter=50, max_sweeps=40, min_sweeps=6,
-                 tol_changed=0.05, patience=3, push_s=1.0, gap_s=5.0, push_floor_z=5.0, min_push_s=0.15,
-                 push_scan_s=0.2, push_scan_z=6.0, rest_band="auto", abstain=True,
-                 average_last=5, mode_smoothing_s=4.0, min_mode_s=4.0, calibrate=True, objective="loo", ard=True,
-                 device="cpu", seed=0, progress=None):
+    def __init__(self, n_modes=1, disturbance=_EM.disturbance, robot=None, *, estep=_EM.estep,
+                 stay_prob=_EM.stay_prob, rate_hz=None, diff_window_s=None, semiparametric="residual",
+                 exclusion_s=_EM.exclusion_s, block_s=_EM.block_s, friction_feature=True, mean_basis="auto",
+                 max_support=_EM.max_support, final_support=_EM.final_support, gp_method=_EM.gp_method,
+                 n_inducing=_EM.n_inducing, fit_points=_EM.fit_points, fit_iter=_EM.fit_iter,
+                 max_sweeps=_EM.max_sweeps, min_sweeps=_EM.min_sweeps, tol_changed=_EM.tol_changed,
+                 patience=_EM.patience, push_s=_EM.push_s, gap_s=_EM.gap_s, push_floor_z=_EM.push_floor_z,
+                 min_push_s=_EM.min_push_s, push_scan_s=_EM.push_scan_s, push_scan_z=_EM.push_scan_z,
+                 rest_band="auto", abstain=_EM.abstain, average_last=_EM.average_last,
+                 mode_smoothing_s=_EM.mode_smoothing_s, min_mode_s=_EM.min_mode_s, calibrate=_EM.calibrate,
+                 objective="loo", ard=True, device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
         self.disturbance = disturbance
         self.robot = robot
@@ -290,18 +297,11 @@ class MultimodalGP(BaseEstimator):
         finally:
             self.device = device
 
-    def _sem_settings(self, mean_basis) -> dict:
-        return dict(disturbance=self.disturbance, estep=self.estep, stay_prob=self.stay_prob,
-                    max_sweeps=self.max_sweeps, min_sweeps=self.min_sweeps, tol_changed=self.tol_changed,
-                    patience=self.patience, average_last=self.average_last, push_s=self.push_s,
-                    gap_s=self.gap_s, push_floor_z=self.push_floor_z, min_push_s=self.min_push_s, abstain=self.abstain,
-                    push_scan_s=self.push_scan_s, push_scan_z=self.push_scan_z, max_support=self.max_support,
-                    final_support=self.final_support, gp_method=self.gp_method, n_inducing=self.n_inducing,
-                    fit_points=self.fit_points, fit_iter=self.fit_iter, exclusion_s=self.exclusion_s,
-                    block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s, min_mode_s=self.min_mode_s,
-                    calibrate=self.calibrate, shared_basis=mean_basis is not None and mean_basis.shared,
-                    rest_band=self.rest_band, seed=self.seed, progress=self.progress,
-                    gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device})
+    def _em_settings(self, mean_basis, shortened: dict) -> EMSettings:
+        """The EM's settings: this estimator's of the same names, then the windows ``shortened``."""
+        return EMSettings.of(self, shared_basis=mean_basis is not None and mean_basis.shared,
+                             gp_kwargs={"ard": self.ard, "objective": self.objective, "device": self.device},
+                             **shortened)
 
     def _settings_record(self) -> dict:
         """The settings as JSON-able values (the robot as its name or URDF path; no progress)."""
@@ -345,12 +345,11 @@ class MultimodalGP(BaseEstimator):
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:
             raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
-        kw = self._sem_settings(basis)
         shortened = windows_for_duration(min(lg.t[-1] - lg.t[0] for lg in logs_), exclusion_s=self.exclusion_s,
                                          block_s=self.block_s, mode_smoothing_s=self.mode_smoothing_s,
                                          min_push_s=self.min_push_s, min_mode_s=self.min_mode_s,
                                          push_scan_s=self.push_scan_s)
-        kw.update(shortened)
+        kw = dict(settings=self._em_settings(basis, shortened), seed=self.seed, progress=self.progress)
         data = dict(t=feats.t, starts=feats.starts, basis=feats.basis, muted=feats.muted,
                     rest=feats.rest_band(basis, fscale) if band else None)
         first, selection = select_n_modes(feats.X, feats.Y, (1, 2, 3), **data, **kw) if self.n_modes == "auto" else (None, None)

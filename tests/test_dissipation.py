@@ -11,6 +11,7 @@ import numpy as np
 from mmgp.gp.exact import ExactGP
 from mmgp.models.dissipation import VelocityReversal, energy_check, injecting_samples, odd_part
 from mmgp.models.mstep import Start
+from mmgp.models.settings import EMSettings
 from mmgp.physics.robot import RobotModel
 
 
@@ -185,7 +186,7 @@ START_LABEL = {"stuck-aware": 0, "every-sample": 1}
 class _StubSEM:
     """What fit_dissipative reads off a fitted MultimodalSEM, with a chosen evidence."""
 
-    n_modes, disturbance = 1, True
+    n_modes, settings = 1, EMSettings()
 
     def __init__(self, evidence: dict):
         self.evidence = evidence

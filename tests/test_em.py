@@ -16,7 +16,7 @@ from scipy.stats import multivariate_normal, norm
 from sklearn.metrics import adjusted_rand_score
 
 import mmgp.gp.exact as gp_module
-from mmgp.models.mstep import FitterSettings, ModeFitter
+from mmgp.models.mstep import ModeFitter
 from mmgp.models.sem import MultimodalSEM
 from mmgp.data.folds import _blocks
 from mmgp.models.robust import basis_rank, fit_basis_coefficients
@@ -231,7 +231,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
     table = {tuple(w): log_evidence(np.flatnonzero(w == 0)) + log_evidence(np.flatnonzero(w == 1))
              + log_prior_ref(w, A, init, {0}) for w in seqs}
 
-    fitter = ModeFitter(x[:, None], y[:, None], FitterSettings.of(MultimodalSEM(2, disturbance=False, max_support=100)))  # no time axis: LOO
+    fitter = ModeFitter(x[:, None], y[:, None], MultimodalSEM(2, disturbance=False, max_support=100).settings.fitter)  # no time axis: LOO
     n_checked = 0
     for w in seqs:
         if min((w == 0).sum(), (w == 1).sum()) < 2:

@@ -238,8 +238,8 @@ def _fit(t, q, dq, ddq, y, band: bool):
     v_s = np.array([0.02])
     X = np.c_[q, dq, ddq, np.tanh(dq / v_s)]
     rest = RestBand(rest_weight(dq[:, None], v_s), sign_cols=[3])
-    return MultimodalSEM(1, disturbance=True, max_sweeps=12, rest_band=band, seed=0).fit(
-        X, y[:, None], t=t, rest=rest)
+    return MultimodalSEM(1, disturbance=True, max_sweeps=12, seed=0).fit(
+        X, y[:, None], t=t, rest=rest if band else None)
 
 
 @pytest.mark.slow
@@ -510,7 +510,7 @@ def test_dry_friction_acts_with_the_velocity_sign_where_the_joint_slides():
 def _one_way_lever(beta: float):
     """A 1-DOF mean basis [gravity-like column, Coulomb sign, sign x |load|] (T, 1, 3) on a log
     that slides one way only (dq < 0) between holds whose torque sits at the band's lower edge."""
-    from mmgp.models.mstep import FitterSettings, ModeFitter, RestBand
+    from mmgp.models.mstep import ModeFitter, RestBand
     from mmgp.models.sem import MultimodalSEM
 
     t = np.arange(400) * 0.05
@@ -526,7 +526,7 @@ def _one_way_lever(beta: float):
     y = np.where(moving, -(c + beta * load), -(c + abs(beta) * load))     # holds at the lower edge
     X = np.stack([q, dq, np.zeros_like(q), np.tanh(dq / v_s[0])], axis=1)
     branches = tuple(np.stack([np.cos(q), np.full_like(q, s), s * load], axis=1)[:, None, :] for s in (1.0, -1.0))
-    fitter = ModeFitter(X, y[:, None], FitterSettings.of(MultimodalSEM()), basis=basis,
+    fitter = ModeFitter(X, y[:, None], MultimodalSEM().settings.fitter, basis=basis,
                         band=RestBand(rest, [3], branches, dry_cols=[1, 2]))
     return fitter, moving
 

@@ -44,7 +44,7 @@ from ..data.differentiation import SavitzkyGolay
 from ..data.folds import default_gap, time_block_folds
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, Standardiser
-from ..models.mstep import FitterSettings, ModeFitter, evenly_spaced
+from ..models.mstep import ModeFitter, evenly_spaced
 from ..physics.plausibility import fit_warnings
 from ..progress import report
 from .metrics import HELDOUT_LABELS, normalised_mse
@@ -112,7 +112,7 @@ def _model_predictions(model, folds, undisturbed: np.ndarray, max_support: int) 
     X, Y = feats.X, feats.Y
     T, n = Y.shape
     modes = np.asarray(model.modes_)
-    fitter = ModeFitter(X, Y, FitterSettings.of(model.sem_), basis=feats.basis)
+    fitter = ModeFitter(X, Y, model.sem_.settings.fitter, basis=feats.basis)
     pred = np.full((T, n), np.nan)
     support = [0] * model.n_modes_
     for train, test in folds:

@@ -242,7 +242,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
     if first is None:
         first = make_sem().fit(X, Y, **fit_kw)
     fits, same_start = [first], None
-    swept = first.disturbance and len(first.trace_)      # labels learnt by sweeps (else nothing to redo)
+    swept = first.settings.disturbance and len(first.trace_)      # labels learnt by sweeps (else nothing to redo)
     if swept and first.other_start_ and first.start_ in START_NAMES:
         other = make_sem().begin(X, Y, start=next(n for n in START_NAMES if n != first.start_), **fit_kw)
         same_start = bool(np.array_equal(other.states, first.start_states_))

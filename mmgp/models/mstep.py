@@ -117,7 +117,7 @@ class Emissions:
 
 @dataclass
 class RestBand:
-    """Where joints may be stuck and how to read their friction band (MultimodalSEM ``rest_band``):
+    """Where joints may be stuck and how to read their friction band (MultimodalGP ``rest_band``):
     ``weight`` (T, n) rest weights in [0, 1] (:func:`mmgp.physics.context.rest_weight`),
     ``sign_cols`` (n,) the columns of X holding each joint's smooth velocity sign,
     ``basis_branches`` the basis (T, n, p) with every joint's velocity sign set to +1 and to -1
@@ -132,10 +132,10 @@ class RestBand:
 
 @dataclass(frozen=True)
 class FitterSettings:
-    """What one mode's model is fitted with, as the EM's settings of the same names
-    (:class:`~mmgp.models.sem.MultimodalSEM`): GP support and hyperparameter-fitting sizes, the
-    leave-window-out radius and objective block (s), whether the basis coefficients are shared
-    by the joints, the GP's kind and keyword arguments."""
+    """What one mode's model is fitted with, the EM's settings of the same names
+    (:attr:`mmgp.models.settings.EMSettings.fitter`): GP support and hyperparameter-fitting sizes,
+    the leave-window-out radius and objective block (s), whether the basis coefficients are
+    shared by the joints, the GP's kind and keyword arguments."""
 
     max_support: int
     fit_points: int

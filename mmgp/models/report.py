@@ -44,7 +44,7 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
              "inputs": input_names(n, semiparametric == "feature", with_friction),
              "n_support": int(len(sem.support_Y_[k]))}
             for k, g in enumerate(sem.gps_)],
-        "disturbance": {"enabled": sem.disturbance, "sigma_d_std": np.sqrt(sem.sigma_d_).tolist(),
+        "disturbance": {"enabled": sem.settings.disturbance, "sigma_d_std": np.sqrt(sem.sigma_d_).tolist(),
                         "p_enter": sem.p_enter_, "p_leave": sem.p_leave_,
                         "n_disturbed": int(sem.disturbed_.sum()),
                         # log-evidence gain of the disturbance states over their BIC price;
@@ -52,13 +52,13 @@ def training_report(*, settings: dict, sem, logs: Sequence[RobotLog], joint_name
                         "evidence_gain": float(getattr(sem, "disturbance_gain_", 0.0)),
                         # samples the sustained-offset scan added (before the shortest-push rule)
                         "n_by_scan": int(getattr(sem, "scan_flagged_", 0)),
-                        "abstained": bool(sem.disturbance and getattr(sem, "abstain", False)
+                        "abstained": bool(sem.settings.disturbance and sem.settings.abstain
                                           and getattr(sem, "disturbance_gain_", 1.0) <= 0.0)},
         # rest_band: each mode's friction band at rest (median half-width over resting
         # samples, N*m, per joint); zeros when it is off or nothing rests
         "friction_band_half_width": np.asarray(getattr(sem, "friction_band_", np.zeros((1, n)))).tolist(),
-        "deterministic": sem.estep == "mpm",
-        "switching_prior": {"stay_prob": sem.stay_prob_, "learned": sem.stay_prob is None},
+        "deterministic": sem.settings.estep == "mpm",
+        "switching_prior": {"stay_prob": sem.stay_prob_, "learned": sem.settings.stay_prob is None},
         "likelihood_trace": [{"sweep": r.sweep, "log_joint": r.log_joint, "log_marginal": r.log_marginal,
                               "changed": r.changed, "n_disturbed": r.n_disturbed, "mode_sizes": r.mode_sizes,
                               "seconds": r.seconds} for r in sem.trace_],

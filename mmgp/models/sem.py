@@ -59,10 +59,11 @@ from .convergence import ConvergenceMonitor, SweepRecord
 from .estep import (chain_matrix, disturbed_given_modes, e_step, longest_runs_s, merge_short_runs,
                     runs_shorter_than)
 from .hmm import forward_backward
-from .mstep import (START_NAMES, FitterSettings, ModeFitter, PushPrior, RestBand, Start, SweepParams, evenly_spaced,
+from .mstep import (START_NAMES, ModeFitter, PushPrior, RestBand, Start, SweepParams, evenly_spaced,
                     mode_emissions, update_parameters)
 from .robust import basis_rank
 from .scan import scan_probability, sustained_offset_scan
+from .settings import EMSettings
 
 __all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
 
@@ -70,79 +71,17 @@ __all__ = ["MultimodalSEM", "SweepRecord", "longest_runs_s", "select_n_modes"]
 class MultimodalSEM:
     """EM for multimodal GP inverse dynamics with a disturbance mode.
 
-    Parameters
-    ----------
-    n_modes : number of dynamic modes K (>= 1).
-    disturbance : include the disturbance mode.
-    estep : "mpm" (default: deterministic, the seed plays no part), "ffbs" or "gibbs" (stochastic:
-        the labels depend on ``seed``; see benchmarks/bench_labels.py).
-    stay_prob : fixed p(k_t = k_{t-1}); None learns it (Beta prior, mean 0.95).
-    max_sweeps, min_sweeps, tol_changed, patience, average_last : when the sweeps stop and how many
-        are averaged after convergence (:class:`.convergence.ConvergenceMonitor`).
-    unconverged : the labels where the sweeps stop unconverged: "best", the sweep's of the highest
-        log marginal (a chain that cycles; ``labels_sweep_``); "average", the last sweeps' (a budget).
-    max_support : at most this many undisturbed samples condition each mode's GP during the sweeps
-        (evenly spaced; the others are predicted out of sample): each sweep costs
-        O(max_support^2 * T) per joint.
-    final_support : the returned GPs (used by predict/export) condition on up to this many of
-        their mode's undisturbed samples (evenly spaced); None: every one.
-    gp_method, n_inducing : the returned GPs' kind (:func:`mmgp.gp.sparse.make_gp`: "auto",
-        "exact", "sgpr", "subset") and SGPR inducing inputs.
-    fit_points, fit_iter : hyperparameter fitting subset size and L-BFGS iterations.
-    exclusion_s, block_s : leave-window-out radius of the E-step likelihood and the block length
-        of the hyperparameter objective, seconds (need ``t`` in ``fit``).
-    mode_smoothing_s : running-median length of the residuals clustered into initial modes.
-    min_mode_s : a mode lasts at least this long, seconds: in the final labels a shorter stretch
-        of one mode takes a neighbouring stretch's mode (:func:`.estep.merge_short_runs`; needs
-        ``t``; K > 1): at poses where a payload barely loads the joints, a second or so of one
-        mode looks like the other. :func:`select_n_modes` also requires every mode to last this long.
-    abandon_short_modes : (K > 1, with ``t``) stop the sweeps early, unconverged, once one mode
-        has held nowhere for ``min_mode_s`` seconds in one stretch (each sweep's most probable
-        labels) for ``patience`` sweeps after ``min_sweeps`` (``abandoned_`` True): such a mode
-        is what :func:`select_n_modes` (which sets this) rejects.
-    calibrate : scale each mode's predictive variance per joint by its undisturbed mean z^2.
-    shared_basis : with a ``basis`` in ``fit``, one coefficient vector for all joints (a
-        payload) instead of one per joint.
-    push_s, gap_s, push_prior_n : prior push duration and time between pushes, seconds, and
-        how many observed pushes that prior is worth.
-    push_floor_z : a push is at least this many predictive standard deviations (Sigma_d floor).
-    min_push_s : a push lasts at least this long, seconds: flagged stretches of the final labels
-        shorter than this are set undisturbed (needs ``t``; only the final labels: the short
-        first flags of light pushes must stay out of the GP's training samples).
-    push_scan_s, push_scan_z : a push is a sustained offset: in the final labels, undisturbed
-        samples whose residual (standardised, averaged over ``push_scan_s`` seconds of
-        undisturbed samples) stands more than ``push_scan_z`` robust standard deviations of that
-        average off on some joint are flagged too (:mod:`.scan`; needs ``t``; 0 s: off). Light
-        pushes 1-3 predictive standard deviations off for 0.2-2 s, which no single sample shows.
-    rest_band : with ``rest`` in ``fit`` (a :class:`.mstep.RestBand`), a joint at rest may hold
-        any torque within its friction band (:meth:`.mstep.ModeFitter.friction_band`, blurred:
-        :func:`.mstep.at_rest_logpdf`; a hold votes once: :func:`.mstep.hold_weights`; docs/training.md).
-    start_trim : fractions of the samples kept by the successive refits of the start.
-    start_z : robust z-score over which a sample starts disturbed.
-    abstain : flag nothing when the disturbance states do not pay their BIC price.
-    gp_kwargs : passed to ExactGP (e.g. ard, objective, device).
-    seed : draws of the "ffbs" and "gibbs" E-steps (unused by "mpm").
+    ``n_modes`` K (>= 1) dynamic modes; ``settings`` an :class:`.settings.EMSettings` (None: the
+    defaults), then ``overrides`` of its fields by name; ``seed`` the draws of the "ffbs" and
+    "gibbs" E-steps (unused by "mpm"); ``progress`` takes each sweep's :class:`SweepRecord`.
     """
 
-    def __init__(self, n_modes: int = 1, *, disturbance: bool = True, estep: str = "mpm",
-                 stay_prob: float | None = None, max_sweeps: int = 40, min_sweeps: int = 6,
-                 tol_changed: float = 0.05, patience: int = 3, average_last: int = 5,
-                 max_support: int = 500, fit_points: int = 500, fit_iter: int = 50,
-                 final_support: int | None = 2000, gp_method: str = "auto", n_inducing: int = 2000,
-                 exclusion_s: float = 1.0, block_s: float = 2.0, mode_smoothing_s: float = 4.0,
-                 min_mode_s: float = 4.0, abandon_short_modes: bool = False,
-                 calibrate: bool = True, shared_basis: bool = False, push_s: float = 1.0, gap_s: float = 5.0,
-                 push_prior_n: float = 3.0, push_floor_z: float = 5.0, min_push_s: float = 0.15,
-                 push_scan_s: float = 0.2, push_scan_z: float = 6.0,
-                 rest_band: bool = True, start_trim: Sequence[float] = (0.8, 0.6),
-                 start_z: float = 3.0, abstain: bool = True, unconverged: str = "best",
-                 gp_kwargs: dict | None = None, seed: int = 0, progress: Callable[[SweepRecord], None] | None = None):
-        if n_modes < 1 or estep not in ("mpm", "ffbs", "gibbs") or unconverged not in ("best", "average"):
-            raise ValueError("expected n_modes >= 1, estep 'mpm', 'ffbs' or 'gibbs', unconverged 'best' or "
-                             f"'average'; got {n_modes!r}, {estep!r}, {unconverged!r}")
-        # Every setting stored under its own name in one statement: the list cannot drift from the signature.
-        settings = {k: v for k, v in locals().items() if k != "self"}
-        vars(self).update(settings, gp_kwargs=gp_kwargs or {})
+    def __init__(self, n_modes: int = 1, settings: EMSettings | None = None, *, seed: int = 0,
+                 progress: Callable[[SweepRecord], None] | None = None, **overrides):
+        if n_modes < 1:
+            raise ValueError(f"expected n_modes >= 1, got {n_modes!r}")
+        self.n_modes, self.seed, self.progress = n_modes, seed, progress
+        self.settings = (settings or EMSettings()).replace(**overrides)
 
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
@@ -174,7 +113,7 @@ class MultimodalSEM:
         if getattr(start, "name", start) not in START_NAMES:
             raise ValueError(f"start must be one of {START_NAMES}, got {start!r}")
         if sweeps is None:
-            sweeps = not (self.n_modes == 1 and not self.disturbance and init_states is None)
+            sweeps = not (self.n_modes == 1 and not self.settings.disturbance and init_states is None)
         if not sweeps:
             return self._fit_single(X, Y, t=t, starts=starts, basis=basis)
         # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
@@ -214,10 +153,10 @@ class MultimodalSEM:
         fitter, starts = self._prepare(X, Y, t, starts, basis, rest, muted)
         T, n = fitter.Y.shape
         K = self.n_modes
-        S = 2 * K if self.disturbance else K
+        S = 2 * K if self.settings.disturbance else K
         rng = np.random.default_rng(self.seed)
-        prior = PushPrior.in_seconds(fitter.t_axis, self.push_s, self.gap_s, self.push_prior_n, self.push_floor_z,
-                                     self.min_push_s)
+        prior = PushPrior.in_seconds(fitter.t_axis, self.settings.push_s, self.settings.gap_s, self.settings.push_prior_n, self.settings.push_floor_z,
+                                     self.settings.min_push_s)
         init_hyper = None
         self.other_start_ = fitter.stuck_aware
         if init_states is not None:
@@ -227,41 +166,41 @@ class MultimodalSEM:
                      Start(start, *self._initial_states(fitter, start == "stuck-aware")))
             states, init_hyper, self.start_ = begun.states.copy(), begun.hyper, begun.name
         self.start_states_ = states.copy()
-        params = SweepParams(hypers=[init_hyper] * K, stay=self.stay_prob if self.stay_prob is not None else 0.95,
+        params = SweepParams(hypers=[init_hyper] * K, stay=self.settings.stay_prob if self.settings.stay_prob is not None else 0.95,
                              p_enter=prior.p_enter, p_leave=prior.p_leave, sigma_d=fitter.Y.var(0) + 1e-12,
                              calib=np.ones((K, n)))
         init_p = np.full(S, 1.0 / S)
         # Hyperparameter refits dominate a sweep's cost on long logs; short logs refit often.
         refit_at = {0, 1, 2, 4, 8, 16, 32} if T <= 2000 else {0, 2, 5}
-        monitor = ConvergenceMonitor(min_sweeps=self.min_sweeps, max_sweeps=self.max_sweeps,
-                                     tol_changed=self.tol_changed, patience=self.patience,
-                                     average_last=self.average_last)
+        monitor = ConvergenceMonitor(min_sweeps=self.settings.min_sweeps, max_sweeps=self.settings.max_sweeps,
+                                     tol_changed=self.settings.tol_changed, patience=self.settings.patience,
+                                     average_last=self.settings.average_last)
         timings = {"init_s": time.perf_counter() - t0, "gp_s": 0.0, "estep_s": 0.0}
         sweep = 0
         self.abandoned_, short = False, 0
         # A mode's shortest stretch in samples (0: no such rule without times or with one mode).
         dt = float(np.median(np.diff(fitter.t_axis))) if fitter.t_axis is not None else math.inf
-        min_mode_len = self.min_mode_s / dt if K > 1 else 0.0
-        scan_len = self.push_scan_s / dt          # the scan's window in samples (0: no scan)
+        min_mode_len = self.settings.min_mode_s / dt if K > 1 else 0.0
+        scan_len = self.settings.push_scan_s / dt          # the scan's window in samples (0: no scan)
         while True:
             ts = time.perf_counter()
             optimise = (sweep in refit_at) and not monitor.averaging
-            em = mode_emissions(fitter, states, params, K, self.disturbance, optimise)
+            em = mode_emissions(fitter, states, params, K, self.settings.disturbance, optimise)
             te = time.perf_counter()
             timings["gp_s"] += te - ts
-            A = chain_matrix(K, self.disturbance, params.stay, params.p_enter, params.p_leave)
-            step = e_step(em.loglik, A, init_p, states, self.estep, rng, starts)
+            A = chain_matrix(K, self.settings.disturbance, params.stay, params.p_enter, params.p_leave)
+            step = e_step(em.loglik, A, init_p, states, self.settings.estep, rng, starts)
             timings["estep_s"] += time.perf_counter() - te
             changed = float((step.states != states).mean())
             states = step.states
-            update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=self.disturbance,
-                              calibrate=self.calibrate, learn_stay=self.stay_prob is None, starts=starts,
+            update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=self.settings.disturbance,
+                              calibrate=self.settings.calibrate, learn_stay=self.settings.stay_prob is None, starts=starts,
                               prior=prior, rest=fitter.rest)
             # Kept for diagnostics (what the last sweep saw); references, no copies.
             self.last_sweep_ = {"means": em.means, "vars": em.vars, "bands": em.bands,
                                 "loglik": em.loglik, "once": em.once, "calib": params.calib.copy(),
                                 "sigma_d": np.array(params.sigma_d), "states": states}
-            n_dist = int((states >= K).sum()) if self.disturbance else 0
+            n_dist = int((states >= K).sum()) if self.settings.disturbance else 0
             rec = SweepRecord(sweep, step.log_joint, step.log_marginal, changed, n_dist,
                               np.bincount(states % K, minlength=K).tolist(), time.perf_counter() - ts)
             if self.progress is not None:
@@ -270,14 +209,14 @@ class MultimodalSEM:
                 report(f"EM sweep {sweep}: {changed:.1%} of the labels changed ({rec.seconds:.1f} s)")
             if monitor.update(rec, step.probs, (copy.deepcopy(params), self.last_sweep_), refit=optimise):
                 break
-            fleeting = sweep + 1 >= self.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
+            fleeting = sweep + 1 >= self.settings.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
             short = short + 1 if fleeting else 0
-            if short >= self.patience:
+            if short >= self.settings.patience:
                 monitor.abandon(step.probs)
                 self.abandoned_ = True
                 break
             sweep += 1
-        if not monitor.converged and not self.abandoned_ and self.unconverged == "best":
+        if not monitor.converged and not self.abandoned_ and self.settings.unconverged == "best":
             params, self.last_sweep_ = monitor.fall_back()
         self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len, scan_len)
         self.n_sweeps_ = sweep
@@ -297,10 +236,10 @@ class MultimodalSEM:
         """``abandon_short_modes``: some mode of this sweep's most probable labels (marginals
         ``probs`` (T, S)) holds nowhere for ``min_mode_s`` in one stretch, the test
         :func:`select_n_modes` rejects a candidate by (on the averaged labels, before merging)."""
-        if not self.abandon_short_modes or K < 2 or t is None:
+        if not self.settings.abandon_short_modes or K < 2 or t is None:
             return False
-        p_mode = probs[:, :K] + (probs[:, K:2 * K] if self.disturbance else 0.0)
-        return float(longest_runs_s(p_mode.argmax(1), t, K, starts).min()) < self.min_mode_s
+        p_mode = probs[:, :K] + (probs[:, K:2 * K] if self.settings.disturbance else 0.0)
+        return float(longest_runs_s(p_mode.argmax(1), t, K, starts).min()) < self.settings.min_mode_s
 
     def _prepare(self, X, Y, t, starts, basis, rest=None, muted=None) -> tuple[ModeFitter, list[int]]:
         """Checked float64 arrays, the joined time axis and the basis rank, as a ModeFitter."""
@@ -315,7 +254,7 @@ class MultimodalSEM:
             basis = np.asarray(basis, dtype=np.float64)
             if basis.ndim != 3 or basis.shape[:2] != (T, n):
                 raise ValueError(f"basis must be (T, n, p) = ({T}, {n}, p), got {basis.shape}")
-            self.basis_rank_ = basis_rank(basis, seed=0, shared=self.shared_basis)
+            self.basis_rank_ = basis_rank(basis, seed=0, shared=self.settings.shared_basis)
         axis = None
         if t is not None:
             # One increasing time axis over all logs, with gaps wider than any window between them.
@@ -325,15 +264,12 @@ class MultimodalSEM:
             offset = 0.0
             for a, b in zip(bounds[:-1], bounds[1:]):
                 axis[a:b] = t[a:b] - t[a] + offset
-                offset = axis[b - 1] + 10.0 * max(self.exclusion_s, 1.0)
+                offset = axis[b - 1] + 10.0 * max(self.settings.exclusion_s, 1.0)
         if T < 5 * self.n_modes:
             raise ValueError(f"{T} samples are too few for {self.n_modes} modes")
-        if rest is not None and self.rest_band:
-            if np.shape(rest.weight) != (T, n) or len(rest.sign_cols) != n:
-                raise ValueError(f"rest weights must be (T, n) = ({T}, {n}) with n sign columns")
-        else:
-            rest = None
-        return (ModeFitter(X, Y, FitterSettings.of(self), t_axis=axis, basis=basis, band=rest, starts=starts,
+        if rest is not None and (np.shape(rest.weight) != (T, n) or len(rest.sign_cols) != n):
+            raise ValueError(f"rest weights must be (T, n) = ({T}, {n}) with n sign columns")
+        return (ModeFitter(X, Y, self.settings.fitter, t_axis=axis, basis=basis, band=rest, starts=starts,
                            muted=muted), starts)
 
     def _initial_states(self, fitter: ModeFitter, stuck: bool = True) -> tuple[np.ndarray, object]:
@@ -350,7 +286,7 @@ class MultimodalSEM:
         report(f"EM start: one GP on all {T} samples")
         mean, var, gp, _, _ = fitter.predictive(np.arange(T), None, True, stuck)
         # Trimming is against pushes; without a disturbance mode every sample belongs to a mode.
-        for frac in (self.start_trim if self.disturbance else ()):
+        for frac in (self.settings.start_trim if self.settings.disturbance else ()):
             report(f"EM start: GP refit on the {frac:.0%} most typical samples")
             z = (np.abs(Y - mean) / np.sqrt(var)).max(1)
             keep = np.sort(np.argsort(z, kind="stable")[:int(math.ceil(frac * T))])
@@ -359,7 +295,7 @@ class MultimodalSEM:
             report(f"EM start: {K} initial modes from the smoothed residuals")
         modes = self._initial_modes(fitter, Y - mean) if K > 1 else np.zeros(T, int)
         states = modes.copy()
-        if self.disturbance:
+        if self.settings.disturbance:
             r = (Y - mean) / np.sqrt(var)
             z = np.zeros_like(r)
             for k in range(K):
@@ -368,7 +304,7 @@ class MultimodalSEM:
                     z[sel] = np.abs(r[sel] - np.median(r[sel], 0)) / (mad_sd(r[sel]) + 1e-12)
             if fitter.muted is not None:
                 z[:, fitter.muted] = 0.0
-            states[(z > self.start_z).any(1)] += K
+            states[(z > self.settings.start_z).any(1)] += K
         return states, gp.hyper_
 
     def _initial_modes(self, fitter: ModeFitter, raw: np.ndarray) -> np.ndarray:
@@ -381,7 +317,7 @@ class MultimodalSEM:
         # mode's offset and suppresses pushes, which would otherwise dominate the clustering.
         if fitter.t_axis is not None:
             dt = float(np.median(np.diff(fitter.t_axis)))
-            w = int(round(self.mode_smoothing_s / max(dt, 1e-9)))
+            w = int(round(self.settings.mode_smoothing_s / max(dt, 1e-9)))
         else:
             w = T // 25
         w = int(min(max(w, 3), max(3, T // 4)))
@@ -397,26 +333,26 @@ class MultimodalSEM:
         K, T, n = self.n_modes, *fitter.Y.shape
         report("EM end: labels and the final GPs")
         post = monitor.posterior()
-        p_mode = np.clip(post[:, :K] + (post[:, K:] if self.disturbance else 0.0), 0.0, 1.0)
-        p_dist = np.clip(post[:, K:].sum(1), 0.0, 1.0) if self.disturbance else np.zeros(T)
-        self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.disturbance else 0.0
-        abstained = self.disturbance and self.abstain and self.disturbance_gain_ <= 0.0
+        p_mode = np.clip(post[:, :K] + (post[:, K:] if self.settings.disturbance else 0.0), 0.0, 1.0)
+        p_dist = np.clip(post[:, K:].sum(1), 0.0, 1.0) if self.settings.disturbance else np.zeros(T)
+        self.disturbance_gain_ = self._disturbance_gain(params, starts) if self.settings.disturbance else 0.0
+        abstained = self.settings.disturbance and self.settings.abstain and self.disturbance_gain_ <= 0.0
         if abstained:
             p_dist = np.zeros(T)
         # A mode lasts: shorter stretches take a neighbouring stretch's mode (one-hot below).
         unmerged = p_mode.argmax(1)
         modes = merge_short_runs(unmerged, min_mode_len, starts) if min_mode_len > 1 else unmerged
         moved = modes != unmerged
-        if self.disturbance and not abstained and moved.any():
+        if self.settings.disturbance and not abstained and moved.any():
             # With the other mode ruled out, a moved sample is its new mode's, undisturbed or
             # pushed, as the chain weighs them (a push can look like the other payload for
             # a fraction of a second; counted clean it would be missed).
             p_dist[moved] = disturbed_given_modes(self.last_sweep_["loglik"], modes, K, params.p_enter,
                                                   params.p_leave, starts)[moved]
-        if self.disturbance and fitter.hold is not None:
+        if self.settings.disturbance and fitter.hold is not None:
             p_dist = self._holds_on_their_own(fitter, modes, p_dist, params)
         p_dist = np.where(runs_shorter_than(p_dist > 0.5, min_push_len, starts), 0.0, p_dist)
-        if self.disturbance:
+        if self.settings.disturbance:
             # After the shortest-push rule (its blips are model error, part of the scan's
             # reference), and the rule again on what the scan adds.
             p_dist = self._scan_sustained(fitter, modes, p_dist, starts, scan_len)
@@ -431,15 +367,15 @@ class MultimodalSEM:
         self.p_disturbed_ = p_dist
         self.labels_ = rank[modes]
         self.disturbed_ = self.p_disturbed_ > 0.5
-        self.sigma_d_ = params.sigma_d if self.disturbance else np.zeros(n)
+        self.sigma_d_ = params.sigma_d if self.settings.disturbance else np.zeros(n)
         bands = self.last_sweep_["bands"]
         # the median band half-width over each mode's resting samples (weight > 0.5), N*m
         self.friction_band_ = np.zeros((K, n)) if bands is None else np.array(
             [[np.median(bands[k][resting(fitter.rest[:, j]), j]) if resting(fitter.rest[:, j]).any() else 0.0
               for j in range(n)] for k in order])
         self.stay_prob_ = float(params.stay)
-        self.p_enter_ = float(params.p_enter) if self.disturbance else 0.0
-        self.p_leave_ = float(params.p_leave) if self.disturbance else 0.0
+        self.p_enter_ = float(params.p_enter) if self.settings.disturbance else 0.0
+        self.p_leave_ = float(params.p_leave) if self.settings.disturbance else 0.0
         self.trace_ = monitor.trace
         self.converged_ = monitor.converged
         best = monitor.best[0] if monitor.fell_back else None
@@ -471,7 +407,7 @@ class MultimodalSEM:
             half = np.stack(last["bands"])[modes, np.arange(T)]
             ok &= fitter.rest * half ** 2 <= var
         window = max(int(round(scan_len)), 1)
-        flags, stat = sustained_offset_scan(z, ok, window, self.push_scan_z, starts)
+        flags, stat = sustained_offset_scan(z, ok, window, self.settings.push_scan_z, starts)
         self.scan_flagged_ = int(flags.sum())
         p_scan = scan_probability(stat, T / window * z.shape[1])
         return np.where(flags, np.maximum(p_dist, p_scan), p_dist)
@@ -538,8 +474,8 @@ class MultimodalSEM:
                 Yk = Y - np.einsum("tjp,jp->tj", fitter.basis, coef)
             self.coef_.append(coef)
             self.members_.append(members)
-            if self.final_support is not None:
-                members = evenly_spaced(members, self.final_support)
+            if self.settings.final_support is not None:
+                members = evenly_spaced(members, self.settings.final_support)
             self.gps_.append(fitter.final_gp(members, Yk, hypers[k]))
             self.support_X_.append(X[members])
             self.support_Y_.append(Yk[members])
@@ -559,7 +495,7 @@ class MultimodalSEM:
 
     def n_parameters(self, d: int, n: int) -> int:
         per_mode = n * (d + 2) + 1 + getattr(self, "basis_rank_", 0)
-        return self.n_modes * per_mode + (self.n_modes > 1) + (2 + n if self.disturbance else 0)
+        return self.n_modes * per_mode + (self.n_modes > 1) + (2 + n if self.settings.disturbance else 0)
 
 
 def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, starts=(0,), basis=None, rest=None,
@@ -587,9 +523,9 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
         scores[K] = m.log_marginal_ - 0.5 * math.log(T) * m.n_parameters(d, n)
         longest[K] = m.longest_stretch_s_.round(3).tolist()
         models[K] = m
-        lasting = K == 1 or t is None or (min(longest[K]) >= m.min_mode_s and not m.abandoned_)
+        lasting = K == 1 or t is None or (min(longest[K]) >= m.settings.min_mode_s and not m.abandoned_)
         if best is not None and (scores[K] <= scores[best] or not lasting):
             break
         best = K
-    return models[best], {"scores": scores, "longest_run_s": longest, "min_mode_s": models[best].min_mode_s,
+    return models[best], {"scores": scores, "longest_run_s": longest, "min_mode_s": models[best].settings.min_mode_s,
                           "abandoned": {K: bool(m.abandoned_) for K, m in models.items()}, "chosen": best}
