@@ -25,11 +25,11 @@ from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
 from .models.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
 from .models.report import labels_frame, training_report
-from .models.settings import EMSettings
+from .models.settings import ESTEPS, EMSettings
 
 MODEL_FORMAT = "mmgp-model"
 MODEL_VERSION = 4
-_CHOICES = {"estep": ("mpm", "ffbs", "gibbs"), "semiparametric": ("residual", "feature", "none"),
+_CHOICES = {"estep": ESTEPS, "semiparametric": ("residual", "feature", "none"),
             "mean_basis": ("auto", "rbd", "payload", "none"), "objective": ("loo", "marginal"),
             "gp_method": GP_METHODS}
 _POSITIVE_INT = ("max_support", "fit_points", "fit_iter", "max_sweeps", "min_sweeps", "average_last",

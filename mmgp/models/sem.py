@@ -150,13 +150,13 @@ class MultimodalSEM:
     def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None, muted=None,
              start="stuck-aware") -> "MultimodalSEM":
         t0 = time.perf_counter()
+        s = self.settings
         fitter, starts = self._prepare(X, Y, t, starts, basis, rest, muted)
         T, n = fitter.Y.shape
         K = self.n_modes
-        S = 2 * K if self.settings.disturbance else K
+        S = 2 * K if s.disturbance else K
         rng = np.random.default_rng(self.seed)
-        prior = PushPrior.in_seconds(fitter.t_axis, self.settings.push_s, self.settings.gap_s, self.settings.push_prior_n, self.settings.push_floor_z,
-                                     self.settings.min_push_s)
+        prior = PushPrior.in_seconds(fitter.t_axis, s.push_s, s.gap_s, s.push_prior_n, s.push_floor_z, s.min_push_s)
         init_hyper = None
         self.other_start_ = fitter.stuck_aware
         if init_states is not None:
@@ -166,41 +166,39 @@ class MultimodalSEM:
                      Start(start, *self._initial_states(fitter, start == "stuck-aware")))
             states, init_hyper, self.start_ = begun.states.copy(), begun.hyper, begun.name
         self.start_states_ = states.copy()
-        params = SweepParams(hypers=[init_hyper] * K, stay=self.settings.stay_prob if self.settings.stay_prob is not None else 0.95,
+        params = SweepParams(hypers=[init_hyper] * K, stay=0.95 if s.stay_prob is None else s.stay_prob,
                              p_enter=prior.p_enter, p_leave=prior.p_leave, sigma_d=fitter.Y.var(0) + 1e-12,
                              calib=np.ones((K, n)))
         init_p = np.full(S, 1.0 / S)
         # Hyperparameter refits dominate a sweep's cost on long logs; short logs refit often.
         refit_at = {0, 1, 2, 4, 8, 16, 32} if T <= 2000 else {0, 2, 5}
-        monitor = ConvergenceMonitor(min_sweeps=self.settings.min_sweeps, max_sweeps=self.settings.max_sweeps,
-                                     tol_changed=self.settings.tol_changed, patience=self.settings.patience,
-                                     average_last=self.settings.average_last)
+        monitor = ConvergenceMonitor(min_sweeps=s.min_sweeps, max_sweeps=s.max_sweeps, tol_changed=s.tol_changed,
+                                     patience=s.patience, average_last=s.average_last)
         timings = {"init_s": time.perf_counter() - t0, "gp_s": 0.0, "estep_s": 0.0}
         sweep = 0
         self.abandoned_, short = False, 0
         # A mode's shortest stretch in samples (0: no such rule without times or with one mode).
         dt = float(np.median(np.diff(fitter.t_axis))) if fitter.t_axis is not None else math.inf
-        min_mode_len = self.settings.min_mode_s / dt if K > 1 else 0.0
-        scan_len = self.settings.push_scan_s / dt          # the scan's window in samples (0: no scan)
+        min_mode_len = s.min_mode_s / dt if K > 1 else 0.0
+        scan_len = s.push_scan_s / dt          # the scan's window in samples (0: no scan)
         while True:
             ts = time.perf_counter()
             optimise = (sweep in refit_at) and not monitor.averaging
-            em = mode_emissions(fitter, states, params, K, self.settings.disturbance, optimise)
+            em = mode_emissions(fitter, states, params, K, s.disturbance, optimise)
             te = time.perf_counter()
             timings["gp_s"] += te - ts
-            A = chain_matrix(K, self.settings.disturbance, params.stay, params.p_enter, params.p_leave)
-            step = e_step(em.loglik, A, init_p, states, self.settings.estep, rng, starts)
+            A = chain_matrix(K, s.disturbance, params.stay, params.p_enter, params.p_leave)
+            step = e_step(em.loglik, A, init_p, states, s.estep, rng, starts)
             timings["estep_s"] += time.perf_counter() - te
             changed = float((step.states != states).mean())
             states = step.states
-            update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=self.settings.disturbance,
-                              calibrate=self.settings.calibrate, learn_stay=self.settings.stay_prob is None, starts=starts,
-                              prior=prior, rest=fitter.rest)
+            update_parameters(fitter.Y, states, em, params, n_modes=K, disturbance=s.disturbance, calibrate=s.calibrate,
+                              learn_stay=s.stay_prob is None, starts=starts, prior=prior, rest=fitter.rest)
             # Kept for diagnostics (what the last sweep saw); references, no copies.
             self.last_sweep_ = {"means": em.means, "vars": em.vars, "bands": em.bands,
                                 "loglik": em.loglik, "once": em.once, "calib": params.calib.copy(),
                                 "sigma_d": np.array(params.sigma_d), "states": states}
-            n_dist = int((states >= K).sum()) if self.settings.disturbance else 0
+            n_dist = int((states >= K).sum()) if s.disturbance else 0
             rec = SweepRecord(sweep, step.log_joint, step.log_marginal, changed, n_dist,
                               np.bincount(states % K, minlength=K).tolist(), time.perf_counter() - ts)
             if self.progress is not None:
@@ -209,14 +207,14 @@ class MultimodalSEM:
                 report(f"EM sweep {sweep}: {changed:.1%} of the labels changed ({rec.seconds:.1f} s)")
             if monitor.update(rec, step.probs, (copy.deepcopy(params), self.last_sweep_), refit=optimise):
                 break
-            fleeting = sweep + 1 >= self.settings.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
+            fleeting = sweep + 1 >= s.min_sweeps and self._fleeting(step.probs, K, fitter.t_axis, starts)
             short = short + 1 if fleeting else 0
-            if short >= self.settings.patience:
+            if short >= s.patience:
                 monitor.abandon(step.probs)
                 self.abandoned_ = True
                 break
             sweep += 1
-        if not monitor.converged and not self.abandoned_ and self.settings.unconverged == "best":
+        if not monitor.converged and not self.abandoned_ and s.unconverged == "best":
             params, self.last_sweep_ = monitor.fall_back()
         self._finish(fitter, monitor, params, starts, prior.min_len, min_mode_len, scan_len)
         self.n_sweeps_ = sweep
@@ -503,7 +501,7 @@ def select_n_modes(X, Y, candidates: Sequence[int] = (1, 2, 3), *, t=None, start
     """Choose K: the candidates are tried in increasing order; K is kept while it raises a
     BIC-style score on the chain's log marginal likelihood of the final sweep (itself built from
     out-of-sample GP predictions), score = log p(Y) - 0.5 log(T) * n_params, and every one of
-    its modes holds for at least ``min_mode_s`` seconds (a MultimodalSEM setting in ``kw``, default
+    its modes holds for at least ``min_mode_s`` seconds (an :class:`.settings.EMSettings` field, ``kw``'s, default
     4) in one stretch (not tested without ``t``).
     The first K that fails either test ends the search.
 

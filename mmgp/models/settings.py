@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, fields
 
 from .mstep import FitterSettings
 
-__all__ = ["EMSettings", "ESTEPS", "UNCONVERGED"]
+__all__ = ["EMSettings", "ESTEPS", "UNCONVERGED", "em_setting_names"]
 
 ESTEPS = ("mpm", "ffbs", "gibbs")
 UNCONVERGED = ("best", "average")
