@@ -184,19 +184,22 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     ``[q, dq, ddq, tanh(dq / v_s)]`` (v_s as in training, :func:`mmgp.physics.context.smooth_sign_scale`: without
     the smooth sign a GP cannot follow the friction jump at velocity reversals and would take it
     for pushes), on at most ``max_points`` samples evenly spaced in time (``t`` in s is passed, so
-    likelihoods leave a window out and a long push is not explained by itself).
+    likelihoods leave a window out and a long push is not explained by itself; where the whole
+    robot stands still, the whole hold: a push that holds the arm still is one observation,
+    :func:`mmgp.models.mstep.hold_windows`).
 
     Returns {"p_disturbed": (T,) posterior push probability interpolated in time to every sample,
     "mode": (T,) int mode labels (nearest subsample), "sigma_d": (n,), "n_modes", "n_points",
     "seconds", "n_sweeps"}. ``sem_kw`` overrides MultimodalSEM settings.
     """
-    from ..physics.context import smooth_sign_scale
+    from ..physics.context import rest_weight, resting, smooth_sign_scale
     from ..models.sem import MultimodalSEM
 
     T, n = resid.shape
     idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
     vs = smooth_sign_scale(dq)
     X = np.concatenate([q, dq, ddq, np.tanh(dq / vs)], axis=1)[idx]
+    still = resting(rest_weight(dq, vs)).all(1)[idx]
     # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
     # sweeps (about 10 s on a 7-DOF log on one core). Otherwise training's inference (its trimmed
     # start, push-size floor, abstention and shortest push), since the robust fit of the effect
@@ -210,7 +213,7 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
               unconverged="average")
     kw.update(sem_kw)
     t0 = time.perf_counter()
-    sem = MultimodalSEM(n_modes=n_modes, disturbance=True, seed=seed, **kw).fit(X, resid[idx], t=t[idx])
+    sem = MultimodalSEM(n_modes=n_modes, disturbance=True, seed=seed, **kw).fit(X, resid[idx], t=t[idx], still=still)
     p = np.interp(t, t[idx], sem.p_disturbed_)
     near = np.clip(np.searchsorted(t[idx], t), 0, len(idx) - 1)
     return {"p_disturbed": p, "mode": sem.labels_[near].astype(int), "sigma_d": np.asarray(sem.sigma_d_),

@@ -13,7 +13,8 @@ from .kernels import rbf_kernel
 
 
 def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndarray, radius: float,
-                        chunk: int = 512, output: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                        chunk: int = 512, output: int | None = None,
+                        windows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Predictive mean and variance (incl. noise) at Xq (M, d) from the GP's support *minus* every
     support point within ``radius`` seconds of each query's time.
 
@@ -23,7 +24,8 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
     the log? Closed form from A = K^-1 of the full support (S) and W = the window's members:
         mu_W  = mu  - u_W^T A_WW^-1 alpha_W,     var_W = var + u_W^T A_WW^-1 u_W,   u = A k_S*.
     ``tq`` (M,) and ``ts`` (S,) are times (sorted ``ts``) on a common axis; (M, m) outputs, or
-    (M, 1) of output ``output`` alone (1/m of the work).
+    (M, 1) of output ``output`` alone (1/m of the work). ``windows`` (M, 2): each query's own
+    window [start, end] in s on that axis, in place of ``tq`` +- ``radius``.
     """
     import torch
 
@@ -43,8 +45,11 @@ def windowed_predictive(gp: ExactGP, Xq: np.ndarray, tq: np.ndarray, ts: np.ndar
     m, S = alpha.shape
     tq = np.asarray(tq, dtype=np.float64)
     order = np.argsort(tq, kind="stable")
-    lo = np.searchsorted(ts, tq[order] - radius, side="left")
-    hi = np.searchsorted(ts, tq[order] + radius, side="right")
+    if windows is None:
+        windows = np.stack([tq - radius, tq + radius], 1)
+    windows = np.asarray(windows, dtype=np.float64)[order]
+    lo = np.searchsorted(ts, windows[:, 0], side="left")
+    hi = np.searchsorted(ts, windows[:, 1], side="right")
     Xq_s = torch.as_tensor(gp.x_scaler_.transform(np.asarray(Xq, dtype=np.float64)[order]), dtype=A.dtype, device=dev)
     M = len(tq)
     means, vars_ = [], []

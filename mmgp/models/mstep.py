@@ -174,15 +174,20 @@ class ModeFitter:
     ``band`` an optional :class:`RestBand`: a joint at rest may then hold any torque within its
     friction band (:meth:`friction_band`), one value per hold (``hold``, :func:`hold_weights`
     over the log starts ``starts``); ``rest`` is its weights (T, n) or None; ``muted`` (n,) bool
-    the joints that do not vote on pushes.
+    the joints that do not vote on pushes; ``still`` (T,) bool the samples where the whole robot
+    stands still: the leave-window-out then leaves a still sample's whole hold out
+    (:func:`hold_windows`).
     Subsets (GP support, hyperparameter fitting points) are evenly spaced, and the GPs' own
     fitting subsets use seed 0: the seed plays no part in the fitted models.
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, settings: FitterSettings, *, t_axis: np.ndarray | None = None,
                  basis: np.ndarray | None = None, band: RestBand | None = None, starts: Sequence[int] = (0,),
-                 muted: np.ndarray | None = None):
+                 muted: np.ndarray | None = None, still: np.ndarray | None = None):
         self.X, self.Y, self.settings, self.t_axis, self.basis = X, Y, settings, t_axis, basis
+        # (T, 2) each sample's leave-out window in s on t_axis; None: t_axis +- exclusion_s
+        self.windows = (None if still is None or t_axis is None
+                        else hold_windows(t_axis, still, settings.exclusion_s, starts))
         self.rest = None if band is None else band.weight
         self.hold = None if band is None else hold_weights(band.weight, starts)
         self.sign_cols = None if band is None else list(band.sign_cols)
@@ -324,7 +329,8 @@ class ModeFitter:
         ordinary predictive."""
         if self._windowed():
             mean, var = windowed_predictive(gp, Xq, self.t_axis[idx], self.t_axis[support],
-                                            self.settings.exclusion_s, output=output)
+                                            self.settings.exclusion_s, output=output,
+                                            windows=None if self.windows is None else self.windows[idx])
             return mean.reshape(len(idx), 1), var.reshape(len(idx), 1)
         mean, std = gp.predict(Xq, include_noise=True)
         n = self.Y.shape[1]
@@ -342,7 +348,8 @@ class ModeFitter:
             optimise = False
         gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
         if windowed:
-            mean, var = windowed_predictive(gp, X, self.t_axis, self.t_axis[support], s.exclusion_s)
+            mean, var = windowed_predictive(gp, X, self.t_axis, self.t_axis[support], s.exclusion_s,
+                                            windows=self.windows)
             return mean.reshape(T, n), var.reshape(T, n), gp, support
         mean = np.empty((T, n))
         std = np.empty((T, n))
@@ -495,6 +502,25 @@ def hold_weights(rest: np.ndarray, starts: Sequence[int] = (0,)) -> np.ndarray:
         first, length = stretches(still, starts)
         for a, L in zip(first[still[first]], length[still[first]]):
             out[a:a + L, j] = 1.0 / L
+    return out
+
+
+def hold_windows(t: np.ndarray, still: np.ndarray, radius: float, starts: Sequence[int] = (0,)) -> np.ndarray:
+    """(T, 2) leave-out windows [start, end] in s: ``t`` (T,) +- ``radius``, widened for a
+    sample in a hold (an unbroken stretch of ``still`` (T,) bool, ending where a log starts,
+    ``starts``) to cover the whole hold.
+
+    Why: held still, the robot shows one torque for the whole hold (set by friction or by the
+    hand that holds it), so a hold is one observation (:func:`hold_weights`). A hold longer than
+    the window, at a pose the log visits only then, was otherwise predicted from itself: a push
+    that held the arm for 1.8 s was explained by the rest of the same push."""
+    t = np.asarray(t, dtype=np.float64)
+    out = np.stack([t - radius, t + radius], 1)
+    still = np.asarray(still, bool)
+    first, length = stretches(still, starts)
+    for a, L in zip(first[still[first]], length[still[first]]):
+        out[a:a + L, 0] = np.minimum(out[a:a + L, 0], t[a])
+        out[a:a + L, 1] = np.maximum(out[a:a + L, 1], t[a + L - 1])
     return out
 
 

@@ -86,7 +86,7 @@ class MultimodalSEM:
     # -- fit -----------------------------------------------------------------------------------
     def fit(self, X: np.ndarray, Y: np.ndarray, *, t: np.ndarray | None = None, starts: Sequence[int] = (0,),
             init_states: np.ndarray | None = None, basis: np.ndarray | None = None,
-            rest: RestBand | None = None, muted: np.ndarray | None = None,
+            rest: RestBand | None = None, muted: np.ndarray | None = None, still: np.ndarray | None = None,
             sweeps: bool | None = None, start: str = "stuck-aware") -> "MultimodalSEM":
         """X (T, d) inputs, Y (T, n) torques, t (T,) sample times in s (per log; enables the
         leave-window-out likelihood). ``starts``: first index of each separate log. ``basis``
@@ -95,6 +95,8 @@ class MultimodalSEM:
         ``rest``: a :class:`.mstep.RestBand` for the friction band at rest (None: no band).
         ``muted``: (n,) bool, joints whose torque channel cannot tell a push (a dead band,
         :func:`mmgp.data.channels.dead_banded`): no vote for or against a push, nor in the start or scan.
+        ``still``: (T,) bool, where the whole robot stands still; with ``t``, a still sample's
+        likelihood leaves its whole hold out (:func:`.mstep.hold_windows`).
         ``start`` (without ``init_states``): one of :data:`START_NAMES`, or a :class:`Start`.
 
         Learned: ``p_mode_`` (T, K), ``p_disturbed_`` (T,), ``labels_`` (T,), ``disturbed_`` (T,),
@@ -119,7 +121,7 @@ class MultimodalSEM:
         # Each sweep is many small factorisations, which must run on one thread (mmgp.threads).
         with limit_threads(1):
             return self._fit(X, Y, t=t, starts=starts, init_states=init_states, basis=basis, rest=rest,
-                             muted=muted, start=start)
+                             muted=muted, still=still, start=start)
 
     def _fit_single(self, X, Y, *, t, starts, basis=None) -> "MultimodalSEM":
         """One GP on every sample, by :func:`mmgp.gp.sparse.make_gp`, hyperparameters by its own
@@ -147,11 +149,11 @@ class MultimodalSEM:
         self.timings_ = {"init_s": 0.0, "gp_s": total, "estep_s": 0.0, "total_s": total}
         return self
 
-    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None, muted=None,
+    def _fit(self, X, Y, *, t, starts, init_states, basis=None, rest=None, muted=None, still=None,
              start="stuck-aware") -> "MultimodalSEM":
         t0 = time.perf_counter()
         s = self.settings
-        fitter, starts = self._prepare(X, Y, t, starts, basis, rest, muted)
+        fitter, starts = self._prepare(X, Y, t, starts, basis, rest, muted, still)
         T, n = fitter.Y.shape
         K = self.n_modes
         S = 2 * K if s.disturbance else K
@@ -222,12 +224,12 @@ class MultimodalSEM:
         self.timings_ = timings
         return self
 
-    def begin(self, X, Y, *, t=None, starts=(0,), basis=None, rest=None, muted=None,
+    def begin(self, X, Y, *, t=None, starts=(0,), basis=None, rest=None, muted=None, still=None,
               start: str = "stuck-aware") -> Start:
         """The start ``start`` the EM would begin from (``fit``'s arguments), without the sweeps;
         ``fit(..., start=<this>)`` begins there without computing it again."""
         with limit_threads(1):
-            fitter, _ = self._prepare(X, Y, t, starts, basis, rest, muted)
+            fitter, _ = self._prepare(X, Y, t, starts, basis, rest, muted, still)
             return Start(start, *self._initial_states(fitter, start == "stuck-aware"))
 
     def _fleeting(self, probs: np.ndarray, K: int, t: np.ndarray | None, starts) -> bool:
@@ -239,7 +241,7 @@ class MultimodalSEM:
         p_mode = probs[:, :K] + (probs[:, K:2 * K] if self.settings.disturbance else 0.0)
         return float(longest_runs_s(p_mode.argmax(1), t, K, starts).min()) < self.settings.min_mode_s
 
-    def _prepare(self, X, Y, t, starts, basis, rest=None, muted=None) -> tuple[ModeFitter, list[int]]:
+    def _prepare(self, X, Y, t, starts, basis, rest=None, muted=None, still=None) -> tuple[ModeFitter, list[int]]:
         """Checked float64 arrays, the joined time axis and the basis rank, as a ModeFitter."""
         X = np.asarray(X, dtype=np.float64)
         Y = np.asarray(Y, dtype=np.float64)
@@ -267,8 +269,10 @@ class MultimodalSEM:
             raise ValueError(f"{T} samples are too few for {self.n_modes} modes")
         if rest is not None and (np.shape(rest.weight) != (T, n) or len(rest.sign_cols) != n):
             raise ValueError(f"rest weights must be (T, n) = ({T}, {n}) with n sign columns")
+        if still is not None and np.shape(still) != (T,):
+            raise ValueError(f"still must be (T,) = ({T},), got {np.shape(still)}")
         return (ModeFitter(X, Y, self.settings.fitter, t_axis=axis, basis=basis, band=rest, starts=starts,
-                           muted=muted), starts)
+                           muted=muted, still=still), starts)
 
     def _initial_states(self, fitter: ModeFitter, stuck: bool = True) -> tuple[np.ndarray, object]:
         """Start without labels (deterministic): one GP on everything, refitted (with the
