@@ -506,3 +506,53 @@ def test_true_runs_against_a_loop_over_every_short_mask():
     for T in range(11):
         for bits in itertools.product([False, True], repeat=T):
             assert runs(np.array(bits, bool)) == loop(bits)
+
+
+def test_windowed_predictive_own_windows_equal_brute_force_refits():
+    """Each query's own window (a hold widened beyond the radius) leaves exactly the support
+    points inside it out: against refits on the rest, window by window."""
+    ts, X, Y = toy_support()
+    hyper = Hyper(np.array([[0.7, 1.2], [0.9, 0.5]]), np.array([1.1, 0.8]), np.array([0.02, 0.05]))
+    gp = ExactGP().fit(X, Y, hyper=hyper, optimise=False)
+    rng = np.random.default_rng(3)
+    tq = np.concatenate([ts[::2], rng.uniform(-1, 11, 8)])
+    Xq = np.column_stack([np.sin(tq), np.cos(0.7 * tq) * 3.0]) + 0.05 * rng.normal(size=(len(tq), 2))
+    start = tq - rng.uniform(0.0, 3.0, len(tq))
+    windows = np.stack([start, np.maximum(start, tq + rng.uniform(-0.5, 3.0, len(tq)))], 1)
+    windows[::5] = windows[0]                     # queries far apart sharing one window
+    mean, var = windowed_predictive(gp, Xq, tq, ts, 99.0, chunk=6, windows=windows)
+    Xs, Ys = gp.Xs_.numpy(), gp.Ys_.numpy()
+    Xq_s = gp.x_scaler_.transform(Xq)
+    for i in range(len(tq)):
+        keep = ~((ts >= windows[i, 0]) & (ts <= windows[i, 1]))
+        for j in range(2):
+            mu, v = gp_predict_ref(Xs[keep], Ys[keep, j], Xq_s[[i]], hyper.lengthscale[j], hyper.signal_var[j],
+                                   hyper.noise_var[j])
+            scale, shift = gp.y_scaler_.scale_[j], gp.y_scaler_.mean_[j]
+            np.testing.assert_allclose(mean[i, j], mu[0] * scale + shift, rtol=1e-8, atol=1e-8 * scale)
+            np.testing.assert_allclose(var[i, j], v[0] * scale ** 2, rtol=1e-8)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_hold_windows_cover_each_hold_against_a_walk(seed):
+    """A still sample's window reaches its hold's first and last sample (a hold ends where a log
+    starts), never less than t +- radius; a moving sample's is t +- radius: against a walk."""
+    from mmgp.models.mstep import hold_windows
+
+    rng = np.random.default_rng(seed)
+    T, radius = 120, 0.35
+    t = np.cumsum(rng.uniform(0.01, 0.2, T))
+    still = rng.random(T) < 0.7
+    starts = sorted({0, *rng.choice(np.arange(1, T), 3, replace=False).tolist()})
+    out = hold_windows(t, still, radius, starts)
+    for i in range(T):
+        lo, hi = t[i] - radius, t[i] + radius
+        if still[i]:
+            a = i
+            while a > 0 and still[a - 1] and a not in starts:
+                a -= 1
+            b = i
+            while b + 1 < T and still[b + 1] and b + 1 not in starts:
+                b += 1
+            lo, hi = min(lo, t[a]), max(hi, t[b])
+        np.testing.assert_allclose(out[i], [lo, hi], rtol=0, atol=0)
