@@ -21,6 +21,7 @@ from .data.logs import RobotLog, log_from_arrays, names_a_robot
 from .errors import InputError
 from .gp.hyper import Hyper
 from .gp.linalg import resolve_device
+from .gp.settings import GP_DEFAULTS as _GP
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
 from .models.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
@@ -190,7 +191,7 @@ class MultimodalGP(BaseEstimator):
                  min_push_s=_EM.min_push_s, push_scan_s=_EM.push_scan_s, push_scan_z=_EM.push_scan_z,
                  rest_band="auto", abstain=_EM.abstain, average_last=_EM.average_last,
                  mode_smoothing_s=_EM.mode_smoothing_s, min_mode_s=_EM.min_mode_s, calibrate=_EM.calibrate,
-                 objective="loo", ard=True, device="cpu", seed=0, progress=None):
+                 objective=_GP.objective, ard=_GP.ard, device="cpu", seed=0, progress=None):
         self.n_modes = n_modes
         self.disturbance = disturbance
         self.robot = robot

@@ -526,7 +526,7 @@ def _one_way_lever(beta: float):
     y = np.where(moving, -(c + beta * load), -(c + abs(beta) * load))     # holds at the lower edge
     X = np.stack([q, dq, np.zeros_like(q), np.tanh(dq / v_s[0])], axis=1)
     branches = tuple(np.stack([np.cos(q), np.full_like(q, s), s * load], axis=1)[:, None, :] for s in (1.0, -1.0))
-    fitter = ModeFitter(X, y[:, None], MultimodalSEM().settings.fitter, basis=basis,
+    fitter = ModeFitter(X, y[:, None], MultimodalSEM(1).settings.fitter, basis=basis,
                         band=RestBand(rest, [3], branches, dry_cols=[1, 2]))
     return fitter, moving
 

@@ -72,3 +72,74 @@ def test_overrides_replace_by_name_and_refuse_unknown_names():
         MultimodalSEM(1, estep="viterbi")
     with pytest.raises(dataclasses.FrozenInstanceError):
         sem.settings.max_sweeps = 3
+
+
+def _literal_defaults(root) -> dict:
+    """Setting name -> [(file:class, default source)] for every constructor parameter and
+    dataclass field under ``root`` whose default is a literal other than None (None says "not
+    set": the callee decides)."""
+    import collections
+    import pathlib
+
+    out = collections.defaultdict(list)
+    for path in sorted(pathlib.Path(root).rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for cls in (n for n in ast.walk(tree) if isinstance(n, ast.ClassDef)):
+            dataclass = any("dataclass" in ast.unparse(d) for d in cls.decorator_list)
+            pairs = []
+            for item in cls.body:
+                if isinstance(item, ast.FunctionDef) and item.name == "__init__":
+                    a = item.args
+                    pairs += list(zip(a.args[len(a.args) - len(a.defaults):], a.defaults))
+                    pairs += [(x, d) for x, d in zip(a.kwonlyargs, a.kw_defaults) if d is not None]
+                elif dataclass and isinstance(item, ast.AnnAssign) and item.value is not None:
+                    pairs.append((item.target, item.value))
+            for target, default in pairs:
+                try:
+                    value = ast.literal_eval(default)
+                except ValueError:
+                    continue                              # a reference to the one declaration
+                if value is not None:
+                    name = getattr(target, "arg", None) or getattr(target, "id", None)
+                    out[name].append((f"{path.name}:{cls.name}", ast.unparse(default)))
+    return out
+
+
+#: names two classes declare on purpose, each its own setting: why
+OWN_SETTINGS = {
+    "seed": "every estimator's own random stream",
+    "block_s": "the EM's leave-block-out length for its GPs; a lone GP's is off (0)",
+    "n_inducing": "the EM's inducing inputs for its final sparse GP; a lone SparseGP's",
+}
+
+
+def test_no_setting_is_declared_in_two_classes():
+    """Across the package, a setting's default value is written in one class; the others that
+    take it refer to that declaration (the GPs to ``mmgp.gp.settings.GP_DEFAULTS``, the EM's
+    users to ``EMSettings``, the Diagnoser to the selector's)."""
+    import pathlib
+
+    declared = _literal_defaults(pathlib.Path(mmgp.__file__).parent)
+    twice = {name: where for name, where in declared.items() if len(where) > 1 and name not in OWN_SETTINGS}
+    assert not twice, f"declared in more than one class: {twice}"
+    # the allowed ones are still declared twice (a stale entry would hide a new duplicate)
+    assert all(len(declared[name]) > 1 for name in OWN_SETTINGS)
+
+
+def test_the_scan_finds_a_setting_declared_twice(tmp_path):
+    (tmp_path / "a.py").write_text("class A:\n    def __init__(self, *, tol=0.1, ref=B.x, off=None):\n        pass\n")
+    (tmp_path / "b.py").write_text("from dataclasses import dataclass\n@dataclass\nclass B:\n    tol: float = 0.1\n")
+    declared = _literal_defaults(tmp_path)
+    assert sorted(declared) == ["tol"] and len(declared["tol"]) == 2
+
+
+def test_the_gps_defaults_are_the_procedures():
+    from mmgp.gp.exact import ExactGP
+    from mmgp.gp.settings import GP_DEFAULTS
+    from mmgp.gp.sparse import SparseGP
+
+    names = [f.name for f in dataclasses.fields(GP_DEFAULTS)]
+    for cls in (ExactGP, SparseGP):
+        src = _signature_defaults_source(cls)
+        assert {n: src[n] for n in names} == {n: f"_GP.{n}" for n in names}, cls
+    assert ExactGP()._procedure() == GP_DEFAULTS

@@ -56,7 +56,7 @@ import numpy as np
 
 from ..errors import InputError, describe
 from .erf import erf
-from .kernels import WendlandProfile
+from .kernels import DEFAULT_SMOOTHNESS, WendlandProfile
 from .passivity import potential_bounds
 from .prior import RigidBodyPrior
 from .validate import FORMAT, KINDS, READ_ERRORS, VERSION, validate_compensator_dict
@@ -91,7 +91,7 @@ class Compensator:
     def __init__(self, kind: str, support, weights, lengthscales, signal_var: float,
                  joint_names: Sequence[str] | None = None, bounds=None, info: dict | None = None,
                  storage_sampled_min: float | None = None, *, prior: RigidBodyPrior | None = None,
-                 smoothness: int = 3, deviation_sampled_max=None):
+                 smoothness: int = DEFAULT_SMOOTHNESS, deviation_sampled_max=None):
         if kind not in KINDS:
             raise ValueError(f"unknown compensator kind {kind!r}; expected one of {KINDS}")
         self.kind = kind
@@ -364,7 +364,7 @@ def load_compensator(path) -> Compensator:
         comp = Compensator(d["kind"], d["support"], d["weights"], d["lengthscales"], d["signal_var"],
                            joint_names=d.get("joint_names"), bounds=d.get("workspace_bounds"),
                            info=d.get("info"), storage_sampled_min=d.get("storage_sampled_min"), prior=prior,
-                           smoothness=int(kernel.get("smoothness", 3)),
+                           smoothness=int(kernel.get("smoothness", DEFAULT_SMOOTHNESS)),
                            deviation_sampled_max=d.get("deviation_sampled_max"))
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"cannot rebuild the compensator ({exc}): expected a field 'mmgp export' wrote",

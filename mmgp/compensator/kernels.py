@@ -37,6 +37,8 @@ import math
 import numpy as np
 
 SMOOTHNESS = (2, 3)
+#: the Wendland smoothness k a compensator's kernel has unless told
+DEFAULT_SMOOTHNESS = 3
 
 
 def _psi_polynomial(l: int, j: int) -> tuple[int, np.ndarray]:
@@ -74,7 +76,7 @@ class WendlandProfile:
 
     support_radius = 1.0
 
-    def __init__(self, n_dims: int, smoothness: int = 3):
+    def __init__(self, n_dims: int, smoothness: int = DEFAULT_SMOOTHNESS):
         if smoothness not in SMOOTHNESS:
             raise ValueError(f"Wendland smoothness must be one of {SMOOTHNESS}, got {smoothness}")
         if n_dims < 1:

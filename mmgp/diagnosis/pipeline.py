@@ -67,6 +67,8 @@ from .result import DiagnosisResult, disturbance_finding, mode_effect_findings, 
 from .selection import FoldGrams, ForwardCVSelector, extend_nested, prune
 from .separation import SEPARATION_METHODS, runs, spans_of
 
+_SELECTION = ForwardCVSelector()   # the selection's settings are declared there; the Diagnoser's defaults are its
+
 
 #: the stages of a diagnosis, in order, as its progress reports name them (``work="diagnosis"``,
 #: ``done`` = the stage's index, ``total`` = their number); a stage a log does not need is skipped
@@ -150,8 +152,8 @@ class Diagnoser(BaseEstimator):
     corrected.xml: ``mmgp.diagnosis.corrected``).
     """
 
-    def __init__(self, effects=None, selector=None, differentiator=None, *, n_folds: int = 20, alpha: float = 0.05,
-                 max_steps: int | None = None, payload_links="auto", reid_min_gain: float = 0.05,
+    def __init__(self, effects=None, selector=None, differentiator=None, *, n_folds: int = 20,
+                 alpha: float = _SELECTION.alpha, max_steps: int | None = _SELECTION.max_steps, payload_links="auto", reid_min_gain: float = 0.05,
                  separate: str = "auto",
                  push_alpha: float = 0.001, em_modes: int = 1, em_points: int = 500, em_gate_peak: float = 5.0,
                  rest_factor: float = 1.0, sign_noise_factor: float = 3.0, lowpass: bool = True,

@@ -49,10 +49,10 @@ def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: 
     ``hyper_fit``: "loo" (ExactGP's own leave-one-out) or "block" (leave-time-block-out)."""
     if hyper_fit == "loo":
         return ExactGP(**opts).fit(X, Y)
-    k = min(len(X), int(opts.get("max_fit_points", 1000)))
+    gp = ExactGP(**opts)
+    k = min(len(X), int(gp.max_fit_points))
     fit_idx = np.unique(np.linspace(0, len(X) - 1, k).round().astype(int))
-    hyper = ExactGP(**opts).block_hyper(X[fit_idx], Y[fit_idx], t[fit_idx], block_s, max_iter=int(opts.get("max_iter", 60)),
-                                        noise_floor=float(opts.get("noise_floor", 1e-6)))
+    hyper = gp.block_hyper(X[fit_idx], Y[fit_idx], t[fit_idx], block_s)
     return ExactGP(**opts).fit(X, Y, hyper=hyper, optimise=False)
 
 

@@ -26,7 +26,8 @@ import torch
 from sklearn.base import BaseEstimator
 from sklearn.utils.validation import check_is_fitted
 
-from .hyper import Hyper, HyperProcedure, Standardiser, default_hyper, fit_hyper_subsets, optimise_hyper
+from .hyper import Hyper, Standardiser, default_hyper, fit_hyper_subsets, optimise_hyper
+from .settings import GP_DEFAULTS as _GP, HyperProcedure
 from .kernels import rbf_cross_kernel, rbf_kernel
 from ..threads import threads_for_rows
 from .linalg import DTYPE, GPNumericalError, gaussian_logpdf, exact_fits, inverse_from_cholesky, resolve_device, robust_cholesky
@@ -56,10 +57,11 @@ class StandardisedRBFGP(BaseEstimator):
     Subclasses implement ``_condition``, ``predict`` and ``loo_predictive``.
     """
 
-    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
-                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
-                 coarse_fit_points: int = 300, independent_outputs: bool = False, refine_rounds: int = 1,
-                 shared_starts: bool = False, block_s: float = 0.0):
+    def __init__(self, *, ard: bool = _GP.ard, objective: str = _GP.objective, max_fit_points: int = _GP.max_fit_points,
+                 max_iter: int = _GP.max_iter, noise_floor: float = _GP.noise_floor, device: str | None = None,
+                 seed: int = _GP.seed, coarse_fit_points: int = _GP.coarse_fit_points,
+                 independent_outputs: bool = _GP.independent_outputs, refine_rounds: int = _GP.refine_rounds,
+                 shared_starts: bool = _GP.shared_starts, block_s: float = _GP.block_s):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -113,15 +115,17 @@ class StandardisedRBFGP(BaseEstimator):
         return out(mean), out(np.sqrt(var_s.cpu().numpy()) * self.y_scaler_.scale_)
 
     def block_hyper(self, X: np.ndarray, Y: np.ndarray, t: np.ndarray, block_s: float, *,
-                    hyper: Hyper | None = None, max_iter: int = 60, noise_floor: float = 1e-6) -> Hyper:
+                    hyper: Hyper | None = None, max_iter: int | None = None, noise_floor: float | None = None) -> Hyper:
         """Hyperparameters (standardised units) maximising the leave-time-block-out log
         predictive (:func:`mmgp.gp.objectives.leave_block_out`, blocks of ``block_s`` s) of X
         (N, d) -> Y (N, m) sampled at times ``t`` (N,) s, climbed from ``hyper`` (None: the
-        default start) for at most ``max_iter`` iterations. Conditions this GP on X, Y (without
-        optimising) for their standardisation: refit it on what it should predict from."""
+        default start) for at most ``max_iter`` iterations (None: this GP's ``max_iter``; the noise
+        floor None: its ``noise_floor``). Conditions this GP on X, Y (without optimising) for their
+        standardisation: refit it on what it should predict from."""
         self.fit(X, Y, hyper=hyper or default_hyper(X.shape[1], np.atleast_2d(Y.T).shape[0]), optimise=False)
         out, _ = optimise_hyper(self.Xs_, self.Ys_, self.hyper_, objective=leave_block_out(t, block_s),
-                                max_iter=max_iter, noise_floor=noise_floor)
+                                max_iter=self.max_iter if max_iter is None else max_iter,
+                                noise_floor=self.noise_floor if noise_floor is None else noise_floor)
         return out
 
     def loo_log_predictive(self) -> float:

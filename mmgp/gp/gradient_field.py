@@ -93,6 +93,9 @@ def curl_free_kernel_torch(X1: torch.Tensor, X2: torch.Tensor, log_l: torch.Tens
     return K.reshape(X1.shape[0] * n, X2.shape[0] * n)
 
 
+#: the potential GPs' noise floor, relative to the mean square target (:func:`fit_potential_hyper`)
+NOISE_FLOOR_REL = 1e-8
+
 def _rbf_kernel_torch(X1: torch.Tensor, X2: torch.Tensor, log_l: torch.Tensor, log_s2: torch.Tensor) -> torch.Tensor:
     return rbf_kernel(X1, X2, torch.exp(log_l)[None], torch.exp(log_s2).reshape(1))[0]
 
@@ -117,7 +120,7 @@ class _PotentialGP(BaseEstimator):
     noise_init: float = 1e-3
 
     def __init__(self, max_hyper_points: int | None = None, max_iter: int | None = None,
-                 noise_floor_rel: float = 1e-8, seed: int = 0):
+                 noise_floor_rel: float = NOISE_FLOOR_REL, seed: int = 0):
         self.max_hyper_points = max_hyper_points
         self.max_iter = max_iter
         self.noise_floor_rel = noise_floor_rel
@@ -185,7 +188,7 @@ class CurlFreeGP(_PotentialGP):
     _kernel_np = staticmethod(curl_free_kernel_np)
 
     def __init__(self, max_hyper_points: int | None = None, max_iter: int | None = None,
-                 noise_floor_rel: float = 1e-8, seed: int = 0, profile=None, lengthscale_init: float = 1.0,
+                 noise_floor_rel: float = NOISE_FLOOR_REL, seed: int = 0, profile=None, lengthscale_init: float = 1.0,
                  max_lengthscale=None, max_neighbours: int | None = None, noise_init: float = 1e-3):
         super().__init__(max_hyper_points, max_iter, noise_floor_rel, seed)
         self.noise_init = noise_init
@@ -252,7 +255,7 @@ def neighbour_limited_scale(Z, max_neighbours: int) -> float:
     return float(min(1.0, np.partition(d, k)[k]))
 
 
-def fit_potential_hyper(X, Y, kernel, *, gradient_targets: bool, max_iter: int = 100, noise_floor_rel: float = 1e-8,
+def fit_potential_hyper(X, Y, kernel, *, gradient_targets: bool, max_iter: int = 100, noise_floor_rel: float = NOISE_FLOOR_REL,
                         lengthscale_init: float = 1.0, max_lengthscale=None, noise_init: float = 1e-3):
     """Maximise the marginal likelihood of a zero-mean GP with ``kernel(X1, X2, log_l, log_s2)``.
 

@@ -20,6 +20,7 @@ from .kernels import rbf_kernel, rbf_log_param_grads
 from ..threads import threads_for_rows
 from .linalg import DTYPE, robust_cholesky
 from .objectives import Objective, get_objective, leave_block_out
+from .settings import GP_DEFAULTS as _GP, HyperProcedure
 
 
 @dataclass
@@ -151,7 +152,7 @@ class RBFParams:
     tiny data sets.
     """
 
-    def __init__(self, m: int, d: int, *, ard: bool = True, noise_floor: float = 1e-6):
+    def __init__(self, m: int, d: int, *, ard: bool = _GP.ard, noise_floor: float = _GP.noise_floor):
         self.m, self.d, self.ard, self.noise_floor = m, d, ard, noise_floor
         self.dl = d if ard else 1
         a, b = m * self.dl, m * self.dl + m
@@ -214,7 +215,7 @@ def rbf_value_and_grad(params: RBFParams, objective: Objective, X: torch.Tensor,
 
 
 def optimise_hyper(X: torch.Tensor, Y: torch.Tensor, init: Hyper, *, objective: str | Objective = "loo",
-                   ard: bool = True, max_iter: int = 60, noise_floor: float = 1e-6,
+                   ard: bool = _GP.ard, max_iter: int = _GP.max_iter, noise_floor: float = _GP.noise_floor,
                    independent: bool = False, rounds: int = 1, climb_tol: float = 0.01,
                    shared_starts: bool = False) -> tuple[Hyper, float]:
     """Hyperparameters of the batched RBF GP maximising ``objective`` (plus the weak priors).
@@ -287,26 +288,6 @@ def restart_from_best_output(parts: list[tuple[Hyper, float]],
         if v > value or (math.isnan(value) and math.isfinite(v)):
             out[j] = (h, v)
     return out
-
-
-@dataclass(frozen=True)
-class HyperProcedure:
-    """The settings of :func:`fit_hyper_subsets`, as the RBF GPs' settings of the same names
-    (:class:`mmgp.gp.exact.StandardisedRBFGP`): subset sizes, L-BFGS iterations, the objective
-    ("loo" or "marginal"; leave-block-out of ``block_s`` seconds when times are given), ARD, the
-    noise floor, the subsets' seed, independent outputs, refinement rounds and shared starts."""
-
-    max_fit_points: int
-    coarse_fit_points: int
-    max_iter: int
-    objective: str
-    ard: bool
-    noise_floor: float
-    seed: int
-    independent_outputs: bool
-    refine_rounds: int
-    shared_starts: bool
-    block_s: float
 
 
 def fit_hyper_subsets(Xs: torch.Tensor, Ys: torch.Tensor, init: Hyper, *, warm: bool, procedure: HyperProcedure,

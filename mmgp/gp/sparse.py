@@ -39,6 +39,7 @@ from sklearn.utils.validation import check_is_fitted
 
 from ..threads import threads_for_rows
 from .exact import ExactGP, StandardisedRBFGP
+from .settings import GP_DEFAULTS as _GP
 from .hyper import Hyper
 from .kernels import rbf_kernel
 from .linalg import DTYPE, exact_fits, resolve_device, robust_cholesky
@@ -87,11 +88,12 @@ class SparseGP(StandardisedRBFGP):
     (per-sample LOO objective of the exact GP on the fitting subset).
     """
 
-    def __init__(self, *, ard: bool = True, objective: str = "loo", max_fit_points: int = 1000,
-                 max_iter: int = 60, noise_floor: float = 1e-6, device: str | None = None, seed: int = 0,
-                 coarse_fit_points: int = 300, independent_outputs: bool = False, n_inducing: int = 1000,
-                 method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = 1,
-                 shared_starts: bool = False, block_s: float = 0.0):
+    def __init__(self, *, ard: bool = _GP.ard, objective: str = _GP.objective, max_fit_points: int = _GP.max_fit_points,
+                 max_iter: int = _GP.max_iter, noise_floor: float = _GP.noise_floor, device: str | None = None,
+                 seed: int = _GP.seed, coarse_fit_points: int = _GP.coarse_fit_points,
+                 independent_outputs: bool = _GP.independent_outputs, n_inducing: int = 1000,
+                 method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = _GP.refine_rounds,
+                 shared_starts: bool = _GP.shared_starts, block_s: float = _GP.block_s):
         super().__init__(ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
                          noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points,
                          independent_outputs=independent_outputs, refine_rounds=refine_rounds,

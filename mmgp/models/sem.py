@@ -76,7 +76,7 @@ class MultimodalSEM:
     "gibbs" E-steps (unused by "mpm"); ``progress`` takes each sweep's :class:`SweepRecord`.
     """
 
-    def __init__(self, n_modes: int = 1, settings: EMSettings | None = None, *, seed: int = 0,
+    def __init__(self, n_modes: int, settings: EMSettings | None = None, *, seed: int = 0,
                  progress: Callable[[SweepRecord], None] | None = None, **overrides):
         if n_modes < 1:
             raise ValueError(f"expected n_modes >= 1, got {n_modes!r}")
