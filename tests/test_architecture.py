@@ -297,3 +297,56 @@ def test_the_one_place_rule_catches_copies(tmp_path):
     g = tmp_path / "y.py"
     g.write_text('"""1.4826 x the MAD."""\n')
     assert len(_written_out("mmgp.models.y", g)) == 1 and _written_out("mmgp.data.statistics", g) == []
+
+
+def _package(module: str) -> str:
+    """The package a module belongs to: ``mmgp.gp.exact`` -> ``mmgp.gp``; top-level modules are
+    each their own (``mmgp.estimator``)."""
+    parts = module.split(".")
+    return ".".join(parts[:2])
+
+
+def _private_reads(modules) -> list[str]:
+    """Private names (one leading underscore) a module takes from another package: imported by
+    name (``from ..data.folds import _blocks``), or read as an attribute (``obj._zs``) where only
+    other packages define that name (as a function, a class, a class attribute or ``self._x``)."""
+    defined, reads = {}, []
+    for module, path in modules:
+        pkg = _package(module)
+        is_pkg = path.name == "__init__.py"
+        home = module if is_pkg else module.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            private = lambda name: name.startswith("_") and not name.startswith("__")  # noqa: E731
+            if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and private(node.name):
+                defined.setdefault(node.name, set()).add(pkg)
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and private(node.target.id):
+                defined.setdefault(node.target.id, set()).add(pkg)
+            elif isinstance(node, ast.Attribute) and private(node.attr):
+                if isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
+                    if isinstance(node.ctx, ast.Store):
+                        defined.setdefault(node.attr, set()).add(pkg)
+                else:
+                    reads.append((pkg, f"{path.name}:{node.lineno} {ast.unparse(node)}", node.attr))
+            elif isinstance(node, ast.ImportFrom) and node.level:
+                base = home.split(".")
+                target = ".".join(base[:len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+                for a in node.names:
+                    if private(a.name) and _package(target) != pkg:
+                        reads.append((pkg, f"{path.name}:{node.lineno} from {target} import {a.name}", None))
+    return [where for pkg, where, attr in reads
+            if attr is None or (attr in defined and pkg not in defined[attr])]
+
+
+def test_no_private_name_is_read_across_packages():
+    bad = _private_reads(_modules())
+    assert not bad, "private names read from another package:\n" + "\n".join(bad)
+
+
+def test_the_private_rule_catches_reads_across_packages(tmp_path):
+    (tmp_path / "a.py").write_text("from ..data.folds import _blocks\nfrom .common import _fail\n")
+    (tmp_path / "b.py").write_text("class G:\n    def fit(self):\n        self._zs = 1\n")
+    (tmp_path / "c.py").write_text("def f(g, h):\n    return g._zs + h._other\n")
+    modules = [("mmgp.gp.a", tmp_path / "a.py"), ("mmgp.compensator.b", tmp_path / "b.py"),
+               ("mmgp.diagnosis.c", tmp_path / "c.py")]
+    bad = _private_reads(modules)
+    assert bad == ["a.py:1 from mmgp.data.folds import _blocks", "c.py:2 g._zs"]

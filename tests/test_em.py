@@ -18,7 +18,7 @@ from sklearn.metrics import adjusted_rand_score
 import mmgp.gp.exact as gp_module
 from mmgp.models.mstep import ModeFitter
 from mmgp.models.sem import MultimodalSEM
-from mmgp.data.folds import _blocks
+from mmgp.data.folds import time_blocks
 from mmgp.models.robust import basis_rank, fit_basis_coefficients
 from mmgp.gp.kernels import rbf_kernel
 from mmgp.gp.objectives import block_loo_log_predictive
@@ -325,7 +325,7 @@ def test_windowed_predictive_equals_brute_force_refits(radius):
 
 def test_blocks_partition_sorted_times():
     ts = np.sort(np.random.default_rng(2).uniform(0, 10, 57))
-    idx, valid = _blocks(ts, 1.3)
+    idx, valid = time_blocks(ts, 1.3)
     members = [idx[b][valid[b]] for b in range(len(idx))]
     np.testing.assert_array_equal(np.concatenate(members), np.arange(len(ts)))
     for b, mb in enumerate(members):
@@ -343,7 +343,7 @@ def test_block_loo_log_predictive_equals_brute_force_refits(length):
     log_sf = np.log(np.array([1.1, 0.8]))
     log_sn = np.log(np.array([0.02, 0.05]))
     floor = 1e-6
-    idx, valid = _blocks(ts, length)
+    idx, valid = time_blocks(ts, length)
     t = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
     K = rbf_kernel(t(Xs), t(Xs), t(np.exp(log_ls)), t(np.exp(log_sf))) + t(np.exp(log_sn) + floor)[:, None, None] * torch.eye(len(ts), dtype=DTYPE)
     got = block_loo_log_predictive(K, t(Ys.T.copy()), idx, valid)

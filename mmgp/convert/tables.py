@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputError
-from ..data.logs import _numeric_column
+from ..data.logs import numeric_column
 
 DELIMITERS = (",", ";", "\t", " ")
 
@@ -78,7 +78,7 @@ def numeric_block(df: pd.DataFrame, columns: list, path: Path) -> np.ndarray:
         shown = [str(c) for c in df.columns[:12]]
         raise InputError(f"column not found; the table has {shown}{' ...' if len(df.columns) > 12 else ''}",
                          file=path, column=str(missing[0]))
-    return np.stack([_numeric_column(df, c, path) for c in columns], axis=1)
+    return np.stack([numeric_column(df, c, path) for c in columns], axis=1)
 
 
 def indexed_columns(names: list[str], pattern: str, path: Path | None = None,

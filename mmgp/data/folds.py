@@ -78,7 +78,7 @@ def spread_subset(idx: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarr
     return idx[np.minimum(pos, len(idx) - 1)]
 
 
-def _blocks(ts: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+def time_blocks(ts: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     """Partition sorted times into consecutive blocks spanning at most ``length`` seconds:
     member indices (n_blocks, B) padded with 0, and a validity mask (n_blocks, B)."""
     starts = [0]

@@ -163,7 +163,7 @@ def _read_table(path: Path, check_columns=lambda names, path: None) -> tuple[pd.
         raise InputError(f"cannot read the file ({exc.strerror or describe(exc)})", file=path) from None
 
 
-def _numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
+def numeric_column(df: pd.DataFrame, col: str, path: Path) -> np.ndarray:
     """Column ``col`` as finite float64 numbers (T,), or an InputError naming the first bad row."""
     s = df[col]
     if s.dtype.kind in "biuf":
@@ -264,12 +264,12 @@ def read_log(path: str | os.PathLike, *, n_joints: int | None = None,
     if T < min_samples:
         what = "no data rows (a header only)" if T == 0 else f"{T} rows"
         raise InputError(f"too few samples: {what}, at least {min_samples} needed", file=path, row=T)
-    t = _numeric_column(df, "t", path)
+    t = numeric_column(df, "t", path)
     _check_time(t, path)
     arrays = {}
     for kind in ("q", "dq", "ddq", "tau"):
         if groups[kind]:
-            arrays[kind] = np.stack([_numeric_column(df, f"{kind}_{j}", path) for j in range(n)], axis=1)
+            arrays[kind] = np.stack([numeric_column(df, f"{kind}_{j}", path) for j in range(n)], axis=1)
         else:
             arrays[kind] = None
     if names is not None:
@@ -301,16 +301,16 @@ def for_robot(log: RobotLog, *, n_joints: int | None = None,
 
 def _label_columns(df: pd.DataFrame, path: Path) -> pd.DataFrame:
     """``t``, ``disturbed`` (-1/0/1) and ``mode`` (int) of a labels table, checked."""
-    out = pd.DataFrame({"t": _numeric_column(df, "t", path)})
+    out = pd.DataFrame({"t": numeric_column(df, "t", path)})
     if "disturbed" in df.columns:
-        d = _numeric_column(df, "disturbed", path)
+        d = numeric_column(df, "disturbed", path)
         bad = ~np.isin(d, (-1, 0, 1))
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
             raise InputError(f"expected 0, 1 or -1, found {d[row]}", file=path, column="disturbed", row=row)
         out["disturbed"] = d.astype(int)
     if "mode" in df.columns:
-        m = _numeric_column(df, "mode", path)
+        m = numeric_column(df, "mode", path)
         bad = (m != np.round(m)) | (np.abs(m) >= 2.0 ** 31)
         if bad.any():
             row = int(np.flatnonzero(bad)[0])

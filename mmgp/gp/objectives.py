@@ -150,11 +150,11 @@ MARGINAL = Objective("marginal", log_marginal_likelihood, marginal_value_and_dK)
 
 def leave_block_out(ts: np.ndarray, length: float) -> Objective:
     """Leave-block-out log predictive for samples at sorted times ``ts`` (N,) s, in consecutive
-    blocks spanning at most ``length`` s (:func:`mmgp.data.folds._blocks`), with its closed-form
+    blocks spanning at most ``length`` s (:func:`mmgp.data.folds.time_blocks`), with its closed-form
     dF/dK (:func:`block_loo_value_and_dK`)."""
-    from ..data.folds import _blocks
+    from ..data.folds import time_blocks
 
-    idx, valid = _blocks(np.asarray(ts, dtype=np.float64), float(length))
+    idx, valid = time_blocks(np.asarray(ts, dtype=np.float64), float(length))
     return Objective(f"leave-block-out({length:g} s)", lambda K, y: block_loo_log_predictive(K, y, idx, valid),
                      lambda L, y: block_loo_value_and_dK(L, y, idx, valid))
 
