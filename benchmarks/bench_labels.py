@@ -286,7 +286,7 @@ class Prepared:
     """A log read, differentiated and turned into features by mmgp's own pipeline."""
 
     feats: object
-    mean_basis: object         # mmgp.models.features.MeanBasis or None
+    mean_basis: object         # mmgp.labelling.features.MeanBasis or None
     robot: object
 
 
@@ -306,7 +306,7 @@ SOURCE_SETTINGS = {"estep": "gibbs", "exclusion_s": 0.0, "friction_feature": Fal
 
 def prepare(case: Case, cfg) -> Prepared:
     """The log's features as ``cfg`` (a MultimodalGP's settings) builds them."""
-    from mmgp.models.features import build_features, load_logs, resolve_mean_basis
+    from mmgp.labelling.features import build_features, load_logs, resolve_mean_basis
     from mmgp.physics.context import smooth_sign_scale
     from mmgp.physics.robot import load_robot
 
@@ -453,10 +453,10 @@ def oracle(case: Case, prep: Prepared, seed: int) -> Outcome:
     labels every sample; no rule after it. What it misses, no inference over this likelihood finds."""
     from mmgp.data.folds import windows_for_duration
     from mmgp.estimator import MultimodalGP
-    from mmgp.models.estep import chain_matrix, e_step
-    from mmgp.models.features import build_features, load_logs, rest_band_on, resolve_mean_basis
-    from mmgp.models.mstep import PushPrior, SweepParams, mode_emissions, update_parameters
-    from mmgp.models.sem import MultimodalSEM
+    from mmgp.labelling.estep import chain_matrix, e_step
+    from mmgp.labelling.features import build_features, load_logs, rest_band_on, resolve_mean_basis
+    from mmgp.labelling.mstep import PushPrior, SweepParams, mode_emissions, update_parameters
+    from mmgp.labelling.sem import MultimodalSEM
     from mmgp.physics.context import smooth_sign_scale
 
     cfg = MultimodalGP(seed=seed)

@@ -72,7 +72,7 @@ def command(args: list[str]) -> float:
 
 
 def inputs(log, friction_scale):
-    from mmgp.models.features import state_features
+    from mmgp.labelling.features import state_features
 
     return state_features(log.q, log.dq, log.ddq, log.tau, "none", None, friction_scale=friction_scale).X
 

@@ -24,9 +24,9 @@ from .gp.linalg import resolve_device
 from .gp.settings import GP_DEFAULTS as _GP
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .models.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
-from .models.report import labels_frame, training_report
-from .models.settings import ESTEPS, EMSettings
+from .labelling.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
+from .labelling.report import labels_frame, training_report
+from .labelling.settings import ESTEPS, EMSettings
 
 MODEL_FORMAT = "mmgp-model"
 MODEL_VERSION = 4
@@ -88,7 +88,7 @@ class MultimodalGP(BaseEstimator):
         Block length in s of the leave-block-out hyperparameter objective (0: per-sample LOO).
     friction_feature : bool, default True
         Add tanh(dq / v_s) (1 - w) per joint to the GP inputs (Coulomb friction's step, faded out
-        at rest, :func:`mmgp.models.features.sliding_sign`); v_s is the package's one smooth-sign
+        at rest, :func:`mmgp.labelling.features.sliding_sign`); v_s is the package's one smooth-sign
         rule (:func:`mmgp.physics.context.smooth_sign_scale`), the same the diagnosis uses.
     mean_basis : "auto", "payload", "rbd" or "none", default "auto"
         With a robot and "residual": each mode's mean is linear in rigid-body regressors,
@@ -149,14 +149,14 @@ class MultimodalGP(BaseEstimator):
     min_mode_s : float >= 0, default 4.0
         A mode lasts at least this long (s): a payload stays on for seconds to minutes, a push
         lasts 0.2-3 s. With ``n_modes="auto"`` a number of modes is accepted only if each of its
-        modes holds this long in one stretch (:func:`mmgp.models.sem.select_n_modes`); with
+        modes holds this long in one stretch (:func:`mmgp.labelling.sem.select_n_modes`); with
         several modes, shorter stretches of one mode in the final labels take a neighbouring
         stretch's mode.
     calibrate : bool, default True
         Scale each mode's predictive variance per joint by its undisturbed mean z^2 (>= 1).
     objective : "loo" or "marginal", default "loo"
         GP hyperparameter objective without times (with them: leave-block-out, sweeps by
-        ``block_s``, one mode alone by :func:`mmgp.models.mstep.honest_block_s`).
+        ``block_s``, one mode alone by :func:`mmgp.labelling.mstep.honest_block_s`).
     ard : bool, default True
         One lengthscale per input.
     device : str, default "cpu"
@@ -164,7 +164,7 @@ class MultimodalGP(BaseEstimator):
     seed : int, default 0
         Seed of the "ffbs" and "gibbs" E-steps (unused by "mpm").
     progress : callable or None, default None
-        Called with each sweep's :class:`mmgp.models.convergence.SweepRecord`.
+        Called with each sweep's :class:`mmgp.labelling.convergence.SweepRecord`.
 
     Attributes (after ``fit``; ``load`` restores those marked *)
     ----------
@@ -175,10 +175,10 @@ class MultimodalGP(BaseEstimator):
         (:func:`mmgp.evaluation.heldout.heldout_score`: model, rigid body, mean).
     n_modes_ *, joint_names_ *, robot_ * (RobotModel or None), robot_spec_ *, semiparametric_ *,
     friction_scale_ * ((n,) v_s in rad/s, or None), sign_fades_ * (input faded at rest: with the band), mean_basis_ * (a
-    :class:`mmgp.models.features.MeanBasis` or None), basis_coef_ * (per mode
+    :class:`mmgp.labelling.features.MeanBasis` or None), basis_coef_ * (per mode
     (n, p) or None), support_X_ * / support_Y_ * (per mode GP inputs / targets), hypers_ *.
     logs_ (the checked logs), features_ (GP inputs and targets), sem_ (the fitted
-    :class:`mmgp.models.sem.MultimodalSEM`, with its trace and last sweep).
+    :class:`mmgp.labelling.sem.MultimodalSEM`, with its trace and last sweep).
     """
 
     def __init__(self, n_modes=1, disturbance=_EM.disturbance, robot=None, *, estep=_EM.estep,
@@ -328,8 +328,8 @@ class MultimodalGP(BaseEstimator):
         import time
 
         from .evaluation.heldout import heldout_score, heldout_warnings
-        from .models.dissipation import fit_dissipative
-        from .models.sem import MultimodalSEM, select_n_modes
+        from .labelling.dissipation import fit_dissipative
+        from .labelling.sem import MultimodalSEM, select_n_modes
 
         t0 = time.perf_counter()
         self._validate()
@@ -479,11 +479,11 @@ class MultimodalGP(BaseEstimator):
         ``signal_var_k``, ``noise_var_k``, optional ``basis_coef_k`` and ``inducing_k`` (SGPR
         inducing inputs), ``friction_scale``) and ``model.json`` (format, version, settings,
         robot, joints, ``gp_kinds``) into ``out_dir`` (created); a large exact GP's solved
-        weights too (``weights_k``, :func:`mmgp.models.saved.store_gp_weights`)."""
+        weights too (``weights_k``, :func:`mmgp.saved_model.store_gp_weights`)."""
         import io
 
         from .data.outputs import atomic_write_bytes
-        from .models.saved import store_gp_weights
+        from .saved_model import store_gp_weights
 
         check_is_fitted(self, "support_X_")
         arrays = {}
@@ -515,7 +515,7 @@ class MultimodalGP(BaseEstimator):
         """A fitted estimator from a folder written by :meth:`save` (or ``mmgp train``); reads
         format versions 1 to 4. ``labels_``, ``report_``, ``logs_``, ``features_`` and ``sem_``
         are not restored."""
-        from .models.saved import read_gp_weights, read_model_arrays, read_model_meta, read_model_robot
+        from .saved_model import read_gp_weights, read_model_arrays, read_model_meta, read_model_robot
 
         model_dir = Path(model_dir)
         meta = read_model_meta(model_dir, MODEL_FORMAT, (1, 2, 3, MODEL_VERSION))

@@ -21,9 +21,9 @@ LAYERS = {
     "mmgp.data": 2,
     "mmgp.gp": 3,
     "mmgp.physics": 4,
-    "mmgp.models": 5,
+    "mmgp.labelling": 5,
     "mmgp.compensator": 6, "mmgp.diagnosis": 6, "mmgp.evaluation": 6, "mmgp.convert": 6,
-    "mmgp.estimator": 7, "mmgp.fleet": 7,
+    "mmgp.estimator": 7, "mmgp.saved_model": 7, "mmgp.fleet": 7,
     "mmgp": 8, "mmgp.cli": 8,
 }
 SIDE = "mmgp.sim"
@@ -290,13 +290,13 @@ def test_the_one_place_rule_catches_copies(tmp_path):
                  "    c = -0.5 * (LOG_2PI + np.log(v)) - 0.5 * len(x) * LOG_2PI\n"
                  "    with threadpool_limits(1):\n        torch.set_num_threads(1)\n"
                  "    return {'OMP_NUM_THREADS': '1'}\n")
-    found = _written_out("mmgp.models.x", f)
+    found = _written_out("mmgp.labelling.x", f)
     counts = {idea: sum(idea in w for w in found) for idea in ONE_PLACE}
     assert list(counts.values()) == [2, 4, 3], found
     assert _written_out("mmgp.gp.linalg", f) == [w for w in found if "Gaussian" not in w]
     g = tmp_path / "y.py"
     g.write_text('"""1.4826 x the MAD."""\n')
-    assert len(_written_out("mmgp.models.y", g)) == 1 and _written_out("mmgp.data.statistics", g) == []
+    assert len(_written_out("mmgp.labelling.y", g)) == 1 and _written_out("mmgp.data.statistics", g) == []
 
 
 def _package(module: str) -> str:

@@ -13,7 +13,7 @@ from mmgp.data.folds import decorrelation_time
 from mmgp.gp.hyper import RBFParams, default_hyper, rbf_value_and_grad
 from mmgp.gp.linalg import DTYPE
 from mmgp.gp.objectives import leave_block_out
-from mmgp.models.sem import MultimodalSEM
+from mmgp.labelling.sem import MultimodalSEM
 
 
 def brute_block_lpd(X, Y, ts, length, ls, sf, sn):

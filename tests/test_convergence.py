@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmgp.models.convergence import ConvergenceMonitor, SweepRecord
-from mmgp.models.sem import MultimodalSEM
+from mmgp.labelling.convergence import ConvergenceMonitor, SweepRecord
+from mmgp.labelling.sem import MultimodalSEM
 
 
 def _monitor(**kw):

@@ -72,7 +72,7 @@ def test_core_imports_and_trains_with_mujoco_refused(tmp_path):
     n_modules = sum(1 for f in (ROOT / "mmgp").rglob("*.py")
                     if "sim" not in f.relative_to(ROOT).parts[:2] and f.stem != "__main__")
     assert len(report["imported"]) == n_modules
-    assert {"mmgp.cli", "mmgp.models.sem", "mmgp.diagnosis", "mmgp.compensator"} <= set(report["imported"])
+    assert {"mmgp.cli", "mmgp.labelling.sem", "mmgp.diagnosis", "mmgp.compensator"} <= set(report["imported"])
     assert report["sim_error"] is not None and "mmgp[sim]" in report["sim_error"]
     assert report["exit_code"] == 0, proc.stderr[-3000:]
     assert not report["mujoco_loaded"]

@@ -106,7 +106,7 @@ def test_valid_mask_drops_rest_and_filter_memory():
 
 
 def test_hmm_posterior_matches_enumeration():
-    """The mode-switch test's two-state marginals (mmgp.models.hmm's forward-backward) equal
+    """The mode-switch test's two-state marginals (mmgp.labelling.hmm's forward-backward) equal
     brute-force sums over all 2^T state paths."""
     import itertools
 

@@ -1,4 +1,4 @@
-"""Friction dissipates (mmgp.models.dissipation): the premise (Pinocchio: the rigid-body torque
+"""Friction dissipates (mmgp.labelling.dissipation): the premise (Pinocchio: the rigid-body torque
 and its regressor are even in the joint velocities), the odd part of a GP against the friction
 it was trained on (closed form), the energy check on dissipative and energy-injecting friction,
 and the refit on a MuJoCo replica whose first fit took pushes for friction."""
@@ -9,9 +9,9 @@ from types import SimpleNamespace
 import numpy as np
 
 from mmgp.gp.exact import ExactGP
-from mmgp.models.dissipation import VelocityReversal, energy_check, injecting_samples, odd_part
-from mmgp.models.mstep import Start
-from mmgp.models.settings import EMSettings
+from mmgp.labelling.dissipation import VelocityReversal, energy_check, injecting_samples, odd_part
+from mmgp.labelling.mstep import Start
+from mmgp.labelling.settings import EMSettings
 from mmgp.physics.robot import RobotModel
 
 
@@ -68,7 +68,7 @@ def _fitted(friction_sign: float, **lever):
 
 def test_variance_gp_on_fewer_samples_bounds_the_full_one():
     # Conditioning on a subset never shrinks the posterior variance (the check's spread errs large).
-    from mmgp.models import dissipation
+    from mmgp.labelling import dissipation
 
     X, good = _fitted(+1.0)
     old = dissipation.VARIANCE_SUPPORT
@@ -100,7 +100,7 @@ def test_injection_within_what_the_model_cannot_explain_is_not_called_physics():
     latent spread far below 0.02 (400 samples), so against the latent spread alone most sliding
     samples would 'inject'; against the predictive spread (noise included, ~0.1) none does. At
     0.4 N*m (4x the noise) the check fires either way."""
-    from mmgp.models.dissipation import _odd_z, _sliding
+    from mmgp.labelling.dissipation import _odd_z, _sliding
 
     X, faint = _fitted(-1.0, level=0.02, noise=0.1)
     dq, sliding = _sliding(X, REV)
@@ -129,7 +129,7 @@ def test_a_first_fit_that_injects_energy_is_not_returned():
 
 
 def test_effective_sample_size_matches_the_ar1_closed_form():
-    from mmgp.models.dissipation import effective_sample_size
+    from mmgp.labelling.dissipation import effective_sample_size
 
     rng = np.random.default_rng(3)
     n = 20000
@@ -155,7 +155,7 @@ def _ar1(rng, n, rho):
 def test_depth_test_is_calibrated_on_dissipative_series_and_ignores_a_lone_glitch():
     """Monte Carlo: z-scores of a model exactly at the dissipation boundary (zero-mean, unit
     spread; white and strongly correlated) reject at most about as often as the level says."""
-    from mmgp.models.dissipation import depth_p_value, effective_sample_size
+    from mmgp.labelling.dissipation import depth_p_value, effective_sample_size
 
     rng = np.random.default_rng(4)
     for rho in (0.0, 0.95):
@@ -172,7 +172,7 @@ def test_depth_test_is_calibrated_on_dissipative_series_and_ignores_a_lone_glitc
 def test_depth_test_finds_a_region_whose_friction_injects_energy():
     # The replica's wrong basin: 30 consecutive samples at -5 standard deviations among
     # dissipative ones (z around +3).
-    from mmgp.models.dissipation import depth_p_value, effective_sample_size
+    from mmgp.labelling.dissipation import depth_p_value, effective_sample_size
 
     rng = np.random.default_rng(5)
     z = 3.0 + 0.3 * _ar1(rng, 300, 0.9)
@@ -210,7 +210,7 @@ def test_the_kept_fit_is_the_best_evidence_among_the_dissipative_ones(monkeypatc
     none dissipates (no sample to swap, so no refit) the fit with the largest p-value."""
     import itertools
 
-    from mmgp.models import dissipation
+    from mmgp.labelling import dissipation
 
     X, Y = np.zeros((6, 4)), np.zeros((6, 1))
     for phys_a, phys_b, (ev_a, ev_b) in itertools.product((True, False), (True, False), ((-5.0, 3.0), (3.0, -5.0))):

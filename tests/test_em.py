@@ -1,4 +1,4 @@
-"""EM pieces (mmgp.models) against exact enumeration and brute-force GP refits.
+"""EM pieces (mmgp.labelling) against exact enumeration and brute-force GP refits.
 
 Tiny chains (T = 4..7 samples, S = 2..4 states) are small enough to enumerate all S^T label
 sequences, which gives the exact posterior marginals, the exact log marginal likelihood, the
@@ -16,14 +16,14 @@ from scipy.stats import multivariate_normal, norm
 from sklearn.metrics import adjusted_rand_score
 
 import mmgp.gp.exact as gp_module
-from mmgp.models.mstep import ModeFitter
-from mmgp.models.sem import MultimodalSEM
+from mmgp.labelling.mstep import ModeFitter
+from mmgp.labelling.sem import MultimodalSEM
 from mmgp.data.folds import time_blocks
-from mmgp.models.robust import basis_rank, fit_basis_coefficients
+from mmgp.data.regression import basis_rank, fit_basis_coefficients
 from mmgp.gp.kernels import rbf_kernel
 from mmgp.gp.objectives import block_loo_log_predictive
 from mmgp.gp.windowed import windowed_predictive
-from mmgp.models.hmm import ffbs_sample, forward_backward, gibbs_conditionals, gibbs_sweep, sequence_log_prior, transition_matrix
+from mmgp.labelling.hmm import ffbs_sample, forward_backward, gibbs_conditionals, gibbs_sweep, sequence_log_prior, transition_matrix
 from mmgp.gp.linalg import DTYPE
 from mmgp.gp.exact import ExactGP
 from mmgp.gp.hyper import Hyper
@@ -537,7 +537,7 @@ def test_windowed_predictive_own_windows_equal_brute_force_refits():
 def test_hold_windows_cover_each_hold_against_a_walk(seed):
     """A still sample's window reaches its hold's first and last sample (a hold ends where a log
     starts), never less than t +- radius; a moving sample's is t +- radius: against a walk."""
-    from mmgp.models.mstep import hold_windows
+    from mmgp.labelling.mstep import hold_windows
 
     rng = np.random.default_rng(seed)
     T, radius = 120, 0.35

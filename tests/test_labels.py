@@ -11,10 +11,10 @@ import pytest
 from scipy.special import logsumexp
 from scipy.stats import norm
 
-from mmgp.models.estep import chain_matrix, e_step
-from mmgp.models.hmm import ffbs_sample, forward_backward
-from mmgp.models.mstep import PushPrior, SweepParams, link_components, push_loglik, pushed_logpdf
-from mmgp.models.sem import MultimodalSEM
+from mmgp.labelling.estep import chain_matrix, e_step
+from mmgp.labelling.hmm import ffbs_sample, forward_backward
+from mmgp.labelling.mstep import PushPrior, SweepParams, link_components, push_loglik, pushed_logpdf
+from mmgp.labelling.sem import MultimodalSEM
 
 
 def _enumerated(loglik, A, init):

@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmgp.models.robust import fit_basis_coefficients, fit_shared_coefficients
+from mmgp.data.regression import fit_basis_coefficients, fit_shared_coefficients
 from mmgp.errors import InputError
 from mmgp import MultimodalGP
-from mmgp.models.features import MeanBasis, resolve_mean_basis
+from mmgp.labelling.features import MeanBasis, resolve_mean_basis
 from mmgp.physics.robot import load_robot
 import mmgp
 from mmgp.sim import panda_modes
@@ -139,7 +139,7 @@ def test_robust_regression_solves_its_estimating_equations_and_ignores_outliers(
     M-estimating equations sum_t w(r_tj / (k s_j)) r_tj A_tj = 0 with the final residuals'
     MAD scale; gross outliers (pushes) get weight zero, so the fit agrees with least squares on
     the clean equations alone."""
-    from mmgp.models.robust import TUKEY_K, robust_regression
+    from mmgp.data.regression import TUKEY_K, robust_regression
 
     rng = np.random.default_rng(7)
     N, n, p = 600, 3, 4

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import adjusted_rand_score
 
-from mmgp.models.sem import MultimodalSEM, longest_runs_s, select_n_modes
+from mmgp.labelling.sem import MultimodalSEM, longest_runs_s, select_n_modes
 
 
 def _brute_longest(labels, t, K, starts):
@@ -72,7 +72,7 @@ def test_lasting_modes_are_kept():
 
 
 def test_merging_short_stretches_by_hand():
-    from mmgp.models.estep import merge_short_runs
+    from mmgp.labelling.estep import merge_short_runs
 
     lab = np.array([0, 0, 0, 0, 1, 0, 0, 0, 2, 2, 1, 1, 1, 1, 1])
     # "1" (1 sample) joins the longer left stretch; then "2 2" (2) is between 8 zeros and 5 ones.
@@ -87,7 +87,7 @@ def test_merging_short_stretches_by_hand():
 
 @pytest.mark.parametrize("seed", range(6))
 def test_merged_stretches_all_last_and_long_ones_keep_their_label(seed):
-    from mmgp.models.estep import merge_short_runs
+    from mmgp.labelling.estep import merge_short_runs
 
     rng = np.random.default_rng(seed)
     lab = np.repeat(rng.integers(0, 3, 80), rng.integers(1, 12, 80))
@@ -113,7 +113,7 @@ def _short_stretches(lab, min_len, starts):
 
 
 def test_a_candidate_whose_mode_cannot_last_is_abandoned_early():
-    from mmgp.models.sem import MultimodalSEM
+    from mmgp.labelling.sem import MultimodalSEM
 
     # Offsets of 1 N*m lasting 3 s in all: a second mode made of them can never hold 4 s.
     t, x, f = _signal(400, 20.0)
@@ -167,7 +167,7 @@ def test_disturbance_given_a_fixed_mode_path_matches_enumeration(seed):
     # whose modes follow the path, weighed by its prior and likelihood.
     import itertools
 
-    from mmgp.models.estep import chain_matrix, disturbed_given_modes
+    from mmgp.labelling.estep import chain_matrix, disturbed_given_modes
 
     rng = np.random.default_rng(seed)
     K, T, starts = 2, 7, (0, 4)

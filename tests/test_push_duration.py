@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmgp.models.estep import runs_shorter_than
-from mmgp.models.sem import MultimodalSEM
+from mmgp.labelling.estep import runs_shorter_than
+from mmgp.labelling.sem import MultimodalSEM
 
 
 def _brute_short(flags, min_len, starts):

@@ -1,4 +1,4 @@
-"""A push is a sustained offset: the pooled residual scan (mmgp.models.scan) and its use in the
+"""A push is a sustained offset: the pooled residual scan (mmgp.labelling.scan) and its use in the
 final labels of the EM."""
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from mmgp.models.scan import masked_moving_average, scan_probability, sustained_offset_scan
-from mmgp.models.sem import MultimodalSEM
+from mmgp.labelling.scan import masked_moving_average, scan_probability, sustained_offset_scan
+from mmgp.labelling.sem import MultimodalSEM
 
 
 def _brute_average(z, ok, window):
@@ -128,7 +128,7 @@ def test_light_pushes_are_flagged_by_the_scan_and_a_clean_log_stays_clean():
 def test_a_few_large_residuals_do_not_make_a_push():
     # Three samples 16 standard deviations off in a 20-sample window: unclipped, their average
     # alone stands ~11 of its spread off; clipped at CLIP_Z they are a blip, not a push.
-    from mmgp.models.scan import CLIP_Z
+    from mmgp.labelling.scan import CLIP_Z
     rng = np.random.default_rng(5)
     T, window = 6000, 20
     z = rng.normal(size=(T, 1))

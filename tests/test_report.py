@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 from mmgp.cli import app
 from mmgp.cli.common import ProgressDisplay, SweepProgress
 from mmgp.evaluation.html import HtmlReport, format_value
-from mmgp.models.convergence import SweepRecord
+from mmgp.labelling.convergence import SweepRecord
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -1,4 +1,4 @@
-"""A stuck joint holds any torque in its friction band: the band density (mmgp.models.mstep),
+"""A stuck joint holds any torque in its friction band: the band density (mmgp.labelling.mstep),
 the rest weight (mmgp.physics.context) and the per-joint scan mask, against independent
 references (numerical integration, a loop), and the EM on a stick-slip log."""
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 from scipy.integrate import quad
 from scipy.stats import norm, uniform
 
-from mmgp.models.mstep import at_rest_logpdf, band_logpdf
-from mmgp.models.scan import masked_moving_average, sustained_offset_scan
+from mmgp.labelling.mstep import at_rest_logpdf, band_logpdf
+from mmgp.labelling.scan import masked_moving_average, sustained_offset_scan
 from mmgp.physics.context import rest_weight
 from test_push_scan import _brute_average
 
@@ -63,7 +63,7 @@ def test_pushed_at_rest_is_the_band_blurred_by_the_push():
     torque in its band plus the push: (1 - w) N(y; mean, var + Sigma_d) + w (uniform band
     convolved with N(0, band var + Sigma_d)); on several joints the equal-weight mixture over
     the push's scales, each at least the floor."""
-    from mmgp.models.mstep import PUSH_SCALES, pushed_logpdf
+    from mmgp.labelling.mstep import PUSH_SCALES, pushed_logpdf
 
     rng = np.random.default_rng(3)
     T, n = 5, 2
@@ -85,7 +85,7 @@ def test_inside_its_band_a_resting_joint_is_no_evidence_of_a_push():
     """Wherever a stuck joint's torque lies inside its band, the pushed density (the band
     blurred by Sigma_d) is below the untouched one (the band blurred by the noise alone), whatever
     the model's mean; beyond the band by a few push spreads, the push is the likelier."""
-    from mmgp.models.mstep import pushed_logpdf
+    from mmgp.labelling.mstep import pushed_logpdf
 
     e = np.linspace(-0.9, 0.9, 41)[:, None]
     half, bvar, sd = np.full_like(e, 1.0), np.full_like(e, 0.01), np.array([0.25])
@@ -109,7 +109,7 @@ def test_rest_weight_closed_form():
 def test_sliding_sign_closed_form():
     """The GP's friction input is tanh(x) (1 - exp(-x^2 / 2)), x = dq / v_s: 0 at rest, odd in dq,
     the smooth sign once the joint slides (values from the closed form, by hand)."""
-    from mmgp.models.features import sliding_sign
+    from mmgp.labelling.features import sliding_sign
 
     v_s = np.array([0.05, 0.2])
     dq = np.array([[0.0, 0.0], [0.05, -0.2], [-0.1, 0.6], [0.5, -2.0]])
@@ -232,8 +232,8 @@ def _stick_slip_log(push: bool, seed: int = 0, move_push: float = 3.5):
 
 
 def _fit(t, q, dq, ddq, y, band: bool):
-    from mmgp.models.mstep import RestBand
-    from mmgp.models.sem import MultimodalSEM
+    from mmgp.labelling.mstep import RestBand
+    from mmgp.labelling.sem import MultimodalSEM
 
     v_s = np.array([0.02])
     X = np.c_[q, dq, ddq, np.tanh(dq / v_s)]
@@ -305,7 +305,7 @@ def test_branch_bases_are_the_basis_at_each_velocity_sign():
     # Features.rest_band builds the basis on each sliding branch by swapping the friction
     # columns; state_features builds it from scratch with the sign forced: they must agree.
     import mmgp
-    from mmgp.models.features import MeanBasis, state_features
+    from mmgp.labelling.features import MeanBasis, state_features
 
     robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
     rng = np.random.default_rng(4)
@@ -328,7 +328,7 @@ def test_a_dead_banded_channel_does_not_vote_on_pushes():
     # its true torque is cannot be seen). Unmuted, its readings are called pushes; muted they decide nothing,
     # and the pushes on joint 0 are still found.
     from mmgp.data.channels import dead_banded
-    from mmgp.models.sem import MultimodalSEM
+    from mmgp.labelling.sem import MultimodalSEM
 
     rng = np.random.default_rng(5)
     T, dt = 1500, 0.02
@@ -374,7 +374,7 @@ def _brute_hold_weights(rest, starts):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_hold_weights_match_a_walk_over_the_samples(seed):
-    from mmgp.models.mstep import hold_weights
+    from mmgp.labelling.mstep import hold_weights
 
     rng = np.random.default_rng(seed)
     rest = rng.uniform(size=(300, 3)) ** 0.3          # mostly resting, in stretches broken at random
@@ -418,7 +418,7 @@ def _constant_holds_log(seed: int = 0):
 
 @pytest.mark.slow
 def test_a_hold_votes_once(monkeypatch):
-    import mmgp.models.mstep as mstep
+    import mmgp.labelling.mstep as mstep
 
     t, q, dq, ddq, y, pushed = _constant_holds_log()
     once = _fit(t, q, dq, ddq, y, band=True)
@@ -497,7 +497,7 @@ def test_a_hold_next_to_a_push_is_judged_on_its_own(tmp_path):
 def test_dry_friction_acts_with_the_velocity_sign_where_the_joint_slides():
     # Closed form: rest weight exp(-(dq/v_s)^2/2) <= 1/2  <=>  |dq| >= v_s sqrt(2 ln 2); there the
     # column is sign(dq) (Coulomb is a step), below it the smooth sign tanh(dq / v_s).
-    from mmgp.models.features import dry_friction_sign
+    from mmgp.labelling.features import dry_friction_sign
 
     v_s = np.array([0.05, 0.2])
     edge = v_s * np.sqrt(2 * np.log(2))
@@ -510,8 +510,8 @@ def test_dry_friction_acts_with_the_velocity_sign_where_the_joint_slides():
 def _one_way_lever(beta: float):
     """A 1-DOF mean basis [gravity-like column, Coulomb sign, sign x |load|] (T, 1, 3) on a log
     that slides one way only (dq < 0) between holds whose torque sits at the band's lower edge."""
-    from mmgp.models.mstep import ModeFitter, RestBand
-    from mmgp.models.sem import MultimodalSEM
+    from mmgp.labelling.mstep import ModeFitter, RestBand
+    from mmgp.labelling.sem import MultimodalSEM
 
     t = np.arange(400) * 0.05
     q = 0.6 - 0.01 * np.cumsum(np.sin(t) > 0)           # slides down while sin t > 0, holds otherwise

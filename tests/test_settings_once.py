@@ -1,4 +1,4 @@
-"""The EM's settings are declared once (issue 32): in :class:`mmgp.models.settings.EMSettings`.
+"""The EM's settings are declared once (issue 32): in :class:`mmgp.labelling.settings.EMSettings`.
 
 MultimodalSEM declares none of them (it takes an EMSettings and overrides by name);
 MultimodalGP's defaults for the settings it exposes are EMSettings' own, read from the source of
@@ -12,8 +12,8 @@ import textwrap
 import pytest
 
 import mmgp
-from mmgp.models.sem import MultimodalSEM
-from mmgp.models.settings import EMSettings, em_setting_names
+from mmgp.labelling.sem import MultimodalSEM
+from mmgp.labelling.settings import EMSettings, em_setting_names
 
 
 def _signature_defaults_source(cls) -> dict:

@@ -332,7 +332,7 @@ class ProgressDisplay:
 
 
 def sweep_line(rec) -> str:
-    """One EM sweep (a :class:`mmgp.models.convergence.SweepRecord`) on one line."""
+    """One EM sweep (a :class:`mmgp.labelling.convergence.SweepRecord`) on one line."""
     return (f"  sweep {rec.sweep:3d}  log p(Y,s) {rec.log_joint:12.2f}  changed {rec.changed:6.1%}  "
             f"disturbed {rec.n_disturbed:5d}  modes {rec.mode_sizes}  ({rec.seconds:.2f} s)")
 

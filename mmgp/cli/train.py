@@ -88,7 +88,7 @@ def _flags_note(rep: dict) -> str:
 
 def _dissipation(rep: dict) -> str:
     """Which start the evidence kept, and what the friction check found where it refitted
-    (mmgp.models.dissipation)."""
+    (mmgp.labelling.dissipation)."""
     d = rep.get("dissipation") or {}
     fits = d.get("fits") or []
     if len(fits) < 2:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..physics.effects import CoupledTransmission, build_atoms
-from ..models.robust import solve_gram
+from ..data.regression import solve_gram
 from .fitting import LEVEL, N_BOOT, cone_gram_fit, constraints
 from .selection import FoldGrams, atom_indices, gain_p, signed_rank_p
 

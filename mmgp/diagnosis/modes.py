@@ -2,7 +2,7 @@
 removed) predict the held-out residual better than one fixed value?
 
 The two-mode model is a sticky two-state switching regression on what the selected physics
-leaves, ``e_t = C_t theta_{s_t} + noise``, fitted by EM with the HMM of ``mmgp.models.hmm`` (the
+leaves, ``e_t = C_t theta_{s_t} + noise``, fitted by EM with the HMM of ``mmgp.labelling.hmm`` (the
 one the multimodal learner uses). It is compared with the one-mode fit on held-out time blocks,
 where the two-mode model may only use samples a filter memory earlier (an HMM ``lag``-step
 predictive), so it cannot win by merely tracking the residual's autocorrelation.
@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..models.estep import stretches
-from ..models.hmm import forward_backward, transition_matrix
+from ..labelling.estep import stretches
+from ..labelling.hmm import forward_backward, transition_matrix
 from ..physics.effects import Effect
-from ..models.robust import solve_gram
+from ..data.regression import solve_gram
 from .selection import signed_rank_p, time_folds
 
 _EVEN = np.array([0.5, 0.5])

@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 from sklearn.base import BaseEstimator
 
-from ..models.robust import solve_gram
+from ..data.regression import solve_gram
 
 
 def time_folds(T: int, K: int, t: np.ndarray, f_c: float | None):

@@ -4,7 +4,7 @@ Two detectors and how they combine:
 
 * :func:`scan_disturbances`: a chi-square scan of the (low-passed) residual that the selected
   physics leaves, at a family-wise false-alarm level over the log's independent samples.
-* :func:`em_separate`: the multimodal learner (``mmgp.models.sem.MultimodalSEM``, disturbance mode
+* :func:`em_separate`: the multimodal learner (``mmgp.labelling.sem.MultimodalSEM``, disturbance mode
   on), which explains the state-dependent part of the residual by a GP rather than by the effect
   library.
 * :func:`gate_spans`: a scanned span is kept when the learner also flags some of it, or when the
@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data.statistics import mad_sd
-from ..models.estep import runs_shorter_than, stretches
+from ..labelling.estep import runs_shorter_than, stretches
 
 #: the ``separate`` setting of the Diagnoser: method name -> what it does (as reported)
 SEPARATION_METHODS = {
@@ -186,14 +186,14 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     for pushes), on at most ``max_points`` samples evenly spaced in time (``t`` in s is passed, so
     likelihoods leave a window out and a long push is not explained by itself; where the whole
     robot stands still, the whole hold: a push that holds the arm still is one observation,
-    :func:`mmgp.models.mstep.hold_windows`).
+    :func:`mmgp.labelling.mstep.hold_windows`).
 
     Returns {"p_disturbed": (T,) posterior push probability interpolated in time to every sample,
     "mode": (T,) int mode labels (nearest subsample), "sigma_d": (n,), "n_modes", "n_points",
     "seconds", "n_sweeps"}. ``sem_kw`` overrides MultimodalSEM settings.
     """
     from ..physics.context import rest_weight, resting, smooth_sign_scale
-    from ..models.sem import MultimodalSEM
+    from ..labelling.sem import MultimodalSEM
 
     T, n = resid.shape
     idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))

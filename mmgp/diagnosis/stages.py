@@ -20,7 +20,7 @@ import numpy as np
 from ..data.filtering import identity, lowpass_for
 from ..data.logs import RobotLog
 from ..data.statistics import difference_noise_sd
-from ..models.robust import robust_regression
+from ..data.regression import robust_regression
 from ..physics.context import Context, build_context, pin_model, smooth_sign_scale
 from ..physics.effects import Effect, build_atoms, effect_classes, effect_library
 from ..physics.identification import base_parameters

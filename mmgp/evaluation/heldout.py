@@ -44,7 +44,7 @@ from ..data.differentiation import SavitzkyGolay
 from ..data.folds import default_gap, time_block_folds
 from ..gp.exact import ExactGP
 from ..gp.hyper import Hyper, Standardiser
-from ..models.mstep import ModeFitter, evenly_spaced
+from ..labelling.mstep import ModeFitter, evenly_spaced
 from ..physics.plausibility import fit_warnings
 from ..progress import report
 from .metrics import HELDOUT_LABELS, normalised_mse

@@ -19,7 +19,7 @@ refitting converges to the point-mass fit. Users:
 * the diagnosis's ``payload`` effect (``mmgp.physics.effects.Payload``): the same linearised
   columns inside the effect library, with the centre of mass re-estimated between fits.
 * the EM's payload mean (``mean_basis: payload``) fits all 10 parameters of the distal body,
-  linearly and robustly (``mmgp.models.robust.fit_shared_coefficients``), per mode: the
+  linearly and robustly (``mmgp.data.regression.fit_shared_coefficients``), per mode: the
   unconstrained form of the same model, with no point-mass or m >= 0 constraint.
 """
 from __future__ import annotations

@@ -61,7 +61,7 @@ from .estep import (chain_matrix, disturbed_given_modes, e_step, longest_runs_s,
 from .hmm import forward_backward
 from .mstep import (START_NAMES, ModeFitter, PushPrior, RestBand, Start, SweepParams, evenly_spaced,
                     mode_emissions, update_parameters)
-from .robust import basis_rank
+from ..data.regression import basis_rank
 from .scan import scan_probability, sustained_offset_scan
 from .settings import EMSettings
 

@@ -1,9 +1,9 @@
 """The EM's settings, declared once (:class:`EMSettings`).
 
-:class:`~mmgp.models.sem.MultimodalSEM` reads them; :class:`mmgp.MultimodalGP` exposes those a user
+:class:`~mmgp.labelling.sem.MultimodalSEM` reads them; :class:`mmgp.MultimodalGP` exposes those a user
 sets under the same names, with these defaults, and builds one :class:`EMSettings` from its own
 values (:meth:`EMSettings.of`); the diagnosis's learner overrides the sizes it needs. The GP part
-goes on to :class:`~mmgp.models.mstep.FitterSettings` (:meth:`EMSettings.fitter`).
+goes on to :class:`~mmgp.labelling.mstep.FitterSettings` (:meth:`EMSettings.fitter`).
 """
 from __future__ import annotations
 

@@ -122,7 +122,7 @@ class Features:
     has_sign: bool = False            # X's columns 3n..4n hold the smooth velocity sign
 
     def rest_band(self, mean_basis: MeanBasis | None, friction_scale: np.ndarray):
-        """The EM's :class:`~mmgp.models.mstep.RestBand` for these features: the rest weights of
+        """The EM's :class:`~mmgp.labelling.mstep.RestBand` for these features: the rest weights of
         the velocities (X's columns n..2n) at the smooth-sign scale ``friction_scale`` (n,) rad/s,
         the smooth-sign input columns (after q, dq, ddq) and the basis ``mean_basis`` on both
         sliding branches; None without the smooth-sign input."""
@@ -144,7 +144,7 @@ class Features:
 
     def velocity_reversal(self, mean_basis: MeanBasis | None):
         """What changes sign when every joint velocity reverses (a
-        :class:`~mmgp.models.dissipation.VelocityReversal`): dq (X's columns n..2n), its smooth
+        :class:`~mmgp.labelling.dissipation.VelocityReversal`): dq (X's columns n..2n), its smooth
         sign (3n..4n, with the friction input) and the basis's dry-friction columns (the last
         ``mean_basis.n_dry``); the rigid-body terms are even in dq."""
         from .dissipation import VelocityReversal
@@ -252,7 +252,7 @@ def dry_friction_sign(dq: np.ndarray, friction_scale: np.ndarray) -> np.ndarray:
     ``tanh(dq / v_s)`` where it may be stuck. Coulomb friction is a step: a joint creeping at
     half the smooth-sign scale already slides against its whole friction, and a column that gave
     it half would leave the other half to whatever else the mean can bend (a payload's gravity
-    column). Where it may be stuck the band at rest (:class:`~mmgp.models.mstep.RestBand`) reads
+    column). Where it may be stuck the band at rest (:class:`~mmgp.labelling.mstep.RestBand`) reads
     the torque instead."""
     sliding = ~resting(rest_weight(dq, friction_scale))
     return np.where(sliding, np.sign(dq), np.tanh(dq / friction_scale))

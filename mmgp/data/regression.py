@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..data.statistics import mad_sd
+from .statistics import mad_sd
 
 HUBER_K = 1.345   # 95% efficiency at the normal
 TUKEY_K = 4.685   # 95% efficiency at the normal

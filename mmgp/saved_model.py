@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, describe
+from .errors import InputError, describe
 
 # SyntaxError / TokenError: NumPy parses an .npy header with Python's tokenizer, and a damaged one fails there
 _NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, SyntaxError,
@@ -82,7 +82,7 @@ def _check_meta(meta: dict, path: Path) -> None:
         raise bad("gp_weights_sha256", f"a list of {K} SHA-256 hex digests or nulls")
     if not isinstance(meta.get("sign_fades", False), bool):
         raise bad("sign_fades", "true or false")
-    from .features import MeanBasis
+    from .labelling.features import MeanBasis
 
     try:
         MeanBasis.parse(meta.get("mean_basis"))
@@ -162,7 +162,7 @@ def read_model_robot(spec: dict | None, meta_path: Path):
     ``meta_path``."""
     if not spec:
         return None
-    from ..physics.robot import load_robot
+    from .physics.robot import load_robot
 
     try:
         return load_robot(robot=spec.get("robot"), urdf=spec.get("urdf"), joint_names=spec.get("joint_names"))

@@ -22,7 +22,7 @@ from ..gp.windowed import windowed_predictive
 from ..physics.context import resting
 from .estep import stretches
 from .hmm import _transition_counts
-from .robust import fit_basis_coefficients, fit_shared_coefficients
+from ..data.regression import fit_basis_coefficients, fit_shared_coefficients
 
 
 #: leave-block-out blocks of the final GP span this many correlation times of its inputs
@@ -133,7 +133,7 @@ class RestBand:
 @dataclass(frozen=True)
 class FitterSettings:
     """What one mode's model is fitted with, the EM's settings of the same names
-    (:attr:`mmgp.models.settings.EMSettings.fitter`): GP support and hyperparameter-fitting sizes,
+    (:attr:`mmgp.labelling.settings.EMSettings.fitter`): GP support and hyperparameter-fitting sizes,
     the leave-window-out radius and objective block (s), whether the basis coefficients are
     shared by the joints, the GP's kind and keyword arguments."""
 
@@ -159,7 +159,7 @@ START_NAMES = ("stuck-aware", "every-sample")
 
 
 class Start(NamedTuple):
-    """A start computed ahead (:meth:`mmgp.models.sem.MultimodalSEM.begin`): name, states (T,), the GP's hyper."""
+    """A start computed ahead (:meth:`mmgp.labelling.sem.MultimodalSEM.begin`): name, states (T,), the GP's hyper."""
     name: str
     states: np.ndarray
     hyper: object

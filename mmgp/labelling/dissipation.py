@@ -13,7 +13,7 @@ clean motion in that direction disturbed (a basin the labels then stay in).
 
 :func:`energy_check` measures how much of a fitted model's friction injects energy;
 :func:`fit_dissipative` runs the EM from its start (and from the other start where the two
-differ: :data:`mmgp.models.mstep.START_NAMES`), checks each fit, and only where none dissipates runs
+differ: :data:`mmgp.labelling.mstep.START_NAMES`), checks each fit, and only where none dissipates runs
 the EM again from labels swapped where it injects energy, keeping the dissipative model with the
 highest evidence (the evidence of every run is kept in the record).
 """
@@ -228,7 +228,7 @@ def fit_dissipative(make_sem: Callable, X: np.ndarray, Y: np.ndarray, rev: Veloc
                     restarts: int = MAX_RESTARTS, **fit_kw):
     """Fit ``make_sem()`` (a MultimodalSEM; ``fit_kw`` its fit's keywords) from its own start, or
     take ``first`` already fitted, and, where the other start of
-    :data:`mmgp.models.mstep.START_NAMES` begins from other labels, from that one too.
+    :data:`mmgp.labelling.mstep.START_NAMES` begins from other labels, from that one too.
     While no fit's friction dissipates (:func:`energy_check`), at most ``restarts`` times: fit
     again from the last fit's labels with the disturbed and undisturbed labels swapped where its
     friction injects energy (:func:`injecting_samples`: where a push that opposed the motion was
