@@ -306,7 +306,7 @@ SOURCE_SETTINGS = {"estep": "gibbs", "exclusion_s": 0.0, "friction_feature": Fal
 
 def prepare(case: Case, cfg) -> Prepared:
     """The log's features as ``cfg`` (a MultimodalGP's settings) builds them."""
-    from mmgp.labelling.features import build_features, load_logs, resolve_mean_basis
+    from mmgp.labelling.features import StateFeatures, load_logs, resolve_mean_basis
     from mmgp.physics.context import smooth_sign_scale
     from mmgp.physics.robot import load_robot
 
@@ -315,7 +315,7 @@ def prepare(case: Case, cfg) -> Prepared:
     semi = cfg.semiparametric if robot is not None else "none"
     fscale = smooth_sign_scale(np.concatenate([lg.dq for lg in logs])) if cfg.friction_feature else None
     basis = resolve_mean_basis(cfg.mean_basis, robot, semi)
-    return Prepared(build_features(logs, semi, robot, fscale, mean_basis=basis), basis, robot)
+    return Prepared(StateFeatures(semi, robot, fscale, mean_basis=basis).of_logs(logs), basis, robot)
 
 
 class MmgpMethod:
@@ -454,7 +454,7 @@ def oracle(case: Case, prep: Prepared, seed: int) -> Outcome:
     from mmgp.data.folds import windows_for_duration
     from mmgp.estimator import MultimodalGP
     from mmgp.labelling.estep import chain_matrix, e_step
-    from mmgp.labelling.features import build_features, load_logs, rest_band_on, resolve_mean_basis
+    from mmgp.labelling.features import StateFeatures, load_logs, rest_band_on, resolve_mean_basis
     from mmgp.labelling.mstep import PushPrior, SweepParams, mode_emissions, update_parameters
     from mmgp.labelling.sem import MultimodalSEM
     from mmgp.physics.context import smooth_sign_scale
@@ -467,7 +467,7 @@ def oracle(case: Case, prep: Prepared, seed: int) -> Outcome:
     basis = resolve_mean_basis(cfg.mean_basis, prep.robot, semi)
     band = rest_band_on(cfg.rest_band, basis)
     basis = dataclasses.replace(basis, friction=True) if band and basis is not None else basis
-    feats = build_features(logs, semi, prep.robot, fscale, mean_basis=basis)
+    feats = StateFeatures(semi, prep.robot, fscale, mean_basis=basis).of_logs(logs)
     K = case.n_modes
     shortened = windows_for_duration(logs[0].t[-1] - logs[0].t[0], exclusion_s=cfg.exclusion_s, block_s=cfg.block_s,
                                      mode_smoothing_s=cfg.mode_smoothing_s, min_push_s=cfg.min_push_s,

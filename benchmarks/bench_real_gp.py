@@ -72,9 +72,9 @@ def command(args: list[str]) -> float:
 
 
 def inputs(log, friction_scale):
-    from mmgp.labelling.features import state_features
+    from mmgp.labelling.features import StateFeatures
 
-    return state_features(log.q, log.dq, log.ddq, log.tau, "none", None, friction_scale=friction_scale).X
+    return StateFeatures(friction_scale=friction_scale)(log.q, log.dq, log.ddq, log.tau).X
 
 
 def exact_peer(X, Y, Xq, hyper_rows: int, objective: str, seed: int = 0):

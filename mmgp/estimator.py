@@ -24,7 +24,7 @@ from .gp.linalg import resolve_device
 from .gp.settings import GP_DEFAULTS as _GP
 from .gp.sparse import GP_METHODS, gp_kind, make_gp
 from .physics.context import smooth_sign_scale
-from .labelling.features import MeanBasis, build_features, load_logs, resolve_mean_basis, rest_band_on, state_features, thin_logs
+from .labelling.features import MeanBasis, StateFeatures, load_logs, resolve_mean_basis, rest_band_on, thin_logs
 from .labelling.report import labels_frame, training_report
 from .labelling.settings import ESTEPS, EMSettings
 
@@ -342,7 +342,7 @@ class MultimodalGP(BaseEstimator):
         basis = resolve_mean_basis(self.mean_basis, robot, semi)
         band = fscale is not None and rest_band_on(self.rest_band, basis)
         basis = dataclasses.replace(basis, friction=True) if band and basis is not None else basis
-        feats = build_features(logs_, semi, robot, fscale, mean_basis=basis, sign_fades=band)
+        feats = StateFeatures(semi, robot, fscale, band, basis).of_logs(logs_)
         k_max = 3 if self.n_modes == "auto" else int(self.n_modes)
         if len(feats.Y) < 5 * k_max:
             raise InputError(f"{len(feats.Y)} samples are too few for {k_max} modes (at least {5 * k_max})")
@@ -453,9 +453,8 @@ class MultimodalGP(BaseEstimator):
             raise InputError(f"q, dq, ddq must have the same number of rows, got {len(q)}, {len(dq)}, {len(ddq)}")
         gp = self.gp(mode)
         coef = self.basis_coef_[mode]
-        f = state_features(q, dq, ddq, np.zeros_like(q), self.semiparametric_, self.robot_,
-                      friction_scale=self.friction_scale_, friction_sign=friction_sign, sign_fades=self.sign_fades_,
-                      mean_basis=self.mean_basis_ if coef is not None else None)
+        recipe = StateFeatures(self.semiparametric_, self.robot_, self.friction_scale_, self.sign_fades_, self.mean_basis_)
+        f = recipe(q, dq, ddq, np.zeros_like(q), friction_sign=friction_sign, basis=coef is not None)
         mean, std = gp.predict(f.X, include_noise=True) if return_std else (gp.predict(f.X, return_std=False), None)
         mean, std = mean.reshape(len(q), -1), (None if std is None else std.reshape(len(q), -1))
         if coef is not None:

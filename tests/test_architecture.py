@@ -235,6 +235,8 @@ ONE_PLACE = {
                            r"LOG_2PI\s*\+", r"\+\s*LOG_2PI\b"]),
     "a thread limit: mmgp.threads": (
         "mmgp.threads", [r"threadpool_limits", r"set_num_threads", r"_NUM_THREADS\b", r"sched_getaffinity"]),
+    "the GP's state inputs: mmgp.labelling.features.StateFeatures": (
+        "mmgp.labelling.features", [r"(concatenate|hstack|column_stack)\(\s*\[\s*[\w.]*\bq\s*,\s*[\w.]*\bdq\s*,"]),
 }
 
 
@@ -289,10 +291,11 @@ def test_the_one_place_rule_catches_copies(tmp_path):
                  "    b = -0.5 * math.log(2.0 * math.pi) - torch.log(torch.sqrt(2 * torch.pi * v))\n"
                  "    c = -0.5 * (LOG_2PI + np.log(v)) - 0.5 * len(x) * LOG_2PI\n"
                  "    with threadpool_limits(1):\n        torch.set_num_threads(1)\n"
+                 "    X = np.concatenate([log.q, log.dq, log.ddq], axis=1)\n"
                  "    return {'OMP_NUM_THREADS': '1'}\n")
     found = _written_out("mmgp.labelling.x", f)
     counts = {idea: sum(idea in w for w in found) for idea in ONE_PLACE}
-    assert list(counts.values()) == [2, 4, 3], found
+    assert list(counts.values()) == [2, 4, 3, 1], found
     assert _written_out("mmgp.gp.linalg", f) == [w for w in found if "Gaussian" not in w]
     g = tmp_path / "y.py"
     g.write_text('"""1.4826 x the MAD."""\n')

@@ -303,9 +303,9 @@ def test_rest_band_model_saves_loads_and_predicts_the_same(tmp_path):
 
 def test_branch_bases_are_the_basis_at_each_velocity_sign():
     # Features.rest_band builds the basis on each sliding branch by swapping the friction
-    # columns; state_features builds it from scratch with the sign forced: they must agree.
+    # columns; StateFeatures builds it from scratch with the sign forced: they must agree.
     import mmgp
-    from mmgp.labelling.features import MeanBasis, state_features
+    from mmgp.labelling.features import MeanBasis, StateFeatures
 
     robot = mmgp.load_robot(urdf=mmgp.demo_urdf())
     rng = np.random.default_rng(4)
@@ -313,11 +313,11 @@ def test_branch_bases_are_the_basis_at_each_velocity_sign():
     tau = rng.normal(size=(50, 1))
     v_s = np.array([0.05])
     basis = MeanBasis("payload", friction=True)
-    f = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, mean_basis=basis)
+    recipe = StateFeatures("residual", robot, v_s, mean_basis=basis)
+    f = recipe(q, dq, ddq, tau)
     band = f.rest_band(basis, v_s)
     for branch, sign in zip(band.basis_branches, (1.0, -1.0)):
-        ref = state_features(q, dq, ddq, tau, "residual", robot, friction_scale=v_s, friction_sign=sign,
-                             mean_basis=basis).basis
+        ref = recipe(q, dq, ddq, tau, friction_sign=sign).basis
         np.testing.assert_allclose(branch, ref, rtol=1e-12, atol=1e-12)
     assert f.basis.shape[2] == 12 and band.sign_cols == [3]
 

@@ -431,9 +431,10 @@ def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.
     """Held-out normalised MSE per joint of nominal + physics + a GP (``ExactGP`` on
     [q, dq, ddq]) fitted per fold to what the fold's physics fit leaves."""
     from ..gp.exact import ExactGP
+    from ..labelling.features import StateFeatures
 
     ctx, S, A, r, M = phys.ctx, phys.S, phys.A, prob.r, prob.M
-    X = np.concatenate([ctx.q, ctx.dq, ctx.ddq], axis=1)
+    X = StateFeatures()(ctx.q, ctx.dq, ctx.ddq, r).X
     rng = np.random.default_rng(seed)
     sq = np.zeros(ctx.n)
     hyper = None

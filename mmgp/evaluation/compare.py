@@ -37,6 +37,7 @@ from ..data.logs import RobotLog
 from ..errors import InputError
 from ..data.outputs import atomic_write_bytes, jsonable, write_figure
 from ..data.folds import default_gap, spread_subset, time_block_folds
+from ..labelling.features import StateFeatures
 from ..physics.plausibility import fit_warnings, log_warnings
 
 __all__ = ["METHODS", "default_gap", "compare", "format_compare", "write_compare"]
@@ -118,8 +119,9 @@ def _compare(log: RobotLog, robot, *, n_folds, gap, max_train, seed, gp_options,
     opts.setdefault("seed", seed)
     opts["device"] = str(resolve_device(opts["device"]))
     tau = np.asarray(log.tau, dtype=np.float64)
-    tau_rbd = robot.rnea(log.q, log.dq, log.ddq) if robot is not None else None
-    pred, fold_info, t_fit = _fold_predictions(log, tau, tau_rbd, folds, gap=gap, max_train=max_train, seed=seed,
+    # the GP's inputs are the state alone (no friction input): the peer of a plain GP
+    f = StateFeatures("residual", robot)(log.q, log.dq, log.ddq, tau)
+    pred, fold_info, t_fit = _fold_predictions(log, tau, f.X, f.tau_rbd, folds, gap=gap, max_train=max_train, seed=seed,
                                                opts=opts, hyper_fit=hyper_fit, block_s=block_s,
                                                say=progress or (lambda m: None))
     out = _result(log, robot, tau, pred, folds, n_folds=n_folds, gap=gap, max_train=max_train, seed=seed)
@@ -131,10 +133,10 @@ def _compare(log: RobotLog, robot, *, n_folds, gap, max_train, seed, gp_options,
     return out
 
 
-def _fold_predictions(log: RobotLog, tau, tau_rbd, folds, *, gap, max_train, seed, opts, hyper_fit, block_s, say):
-    """Out-of-fold predictions {method: (T, n)}, per-fold records and the fit time (s)."""
+def _fold_predictions(log: RobotLog, tau, X, tau_rbd, folds, *, gap, max_train, seed, opts, hyper_fit, block_s, say):
+    """Out-of-fold predictions {method: (T, n)} from GP inputs X (T, d), per-fold records and the
+    fit time (s)."""
     T, n = tau.shape
-    X = np.concatenate([log.q, log.dq, log.ddq], axis=1)
     rng = np.random.default_rng(seed)
     methods = list(METHODS) if tau_rbd is not None else ["gp"]
     pred = {m: np.full_like(tau, np.nan) for m in methods}

@@ -180,59 +180,69 @@ def resolve_mean_basis(kind: str, robot, semiparametric: str, friction: bool = F
     return MeanBasis(kind, friction=friction)
 
 
-def build_features(logs: Sequence[RobotLog], semiparametric: str, robot=None,
-                   friction_scale: np.ndarray | None = None, mean_basis: MeanBasis | None = None,
-                   sign_fades: bool = True) -> Features:
-    """GP inputs [q, dq, ddq, sliding_sign(dq)(, tau_rbd)] and targets from checked logs
-    (``sign_fades``: as :func:`state_features`)."""
-    q = np.concatenate([lg.q for lg in logs])
-    dq = np.concatenate([lg.dq for lg in logs])
-    ddq = np.concatenate([lg.ddq for lg in logs])
-    tau = np.concatenate([lg.tau for lg in logs])
-    starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
-    f = state_features(q, dq, ddq, tau, semiparametric, robot, starts, friction_scale, mean_basis=mean_basis,
-                       sign_fades=sign_fades)
-    f.t = np.concatenate([lg.t for lg in logs])
-    f.muted = dead_banded(tau)
-    return f
+@dataclass(frozen=True, eq=False)
+class StateFeatures:
+    """How states become the GP's inputs and targets, the one recipe of ``train``, ``predict``,
+    ``compare`` and the diagnosis's learner.
 
+    Inputs [q, dq, ddq(, friction input)(, tau_rbd)]: the friction input at the smooth-sign scale
+    ``friction_scale`` (n,) rad/s (None: none), faded at rest (:func:`sliding_sign`) when
+    ``sign_fades`` (with the friction band at rest), else ``tanh(dq / v_s)`` (models before
+    version 4, and the diagnosis's learner, which has no band); with ``robot`` (a RobotModel)
+    ``semiparametric`` "residual" (targets tau - RNEA), "feature" (RNEA as inputs) or "none";
+    ``mean_basis`` the columns of each mode's linear mean (None: none)."""
 
-def state_features(q, dq, ddq, tau, semiparametric, robot, starts=(0,), friction_scale=None,
-                   friction_sign=None, mean_basis: MeanBasis | None = None, sign_fades: bool = True) -> Features:
-    """GP inputs and targets at states q, dq, ddq and torques tau (T, n), with the columns of
-    ``mean_basis`` (None: no basis); ``friction_sign`` (+1 or -1, or per sample (T, 1)) replaces
-    the smooth sign input (prediction on one sliding branch); ``sign_fades`` False: the smooth
-    sign without :func:`sliding_sign`'s fade at rest (without the friction band at rest, where
-    the position-only target reads the GP's branches at dq = 0; models before version 4)."""
-    # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
-    # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
-    # step to the GP directly, so lengthscales can stay long.
-    parts = [q, dq, ddq]
-    if friction_scale is not None:
-        if friction_sign is not None:
-            parts.append(np.full_like(dq, friction_sign))
-        else:
-            parts.append(sliding_sign(dq, friction_scale) if sign_fades else np.tanh(dq / friction_scale))
-    X = np.concatenate(parts, axis=1)
-    tau_rbd = None
-    if robot is not None and semiparametric != "none":
-        tau_rbd = robot.rnea(q, dq, ddq)
-        if semiparametric == "feature":
-            X = np.concatenate([X, tau_rbd], axis=1)
-    Y = tau - tau_rbd if (tau_rbd is not None and semiparametric == "residual") else tau
-    basis, sign = None, None
-    if mean_basis is not None and mean_basis.friction:
-        if friction_scale is None:
-            raise ValueError("a '+friction' mean basis needs the friction input (friction_scale)")
-        # Dry friction per joint, last: Coulomb (smooth sign) and load-dependent (sign x |tau_rbd|,
-        # gear friction growing with the load), as physics in the mean, so a sliding branch seen
-        # once is still predicted and the band at rest grows with the load (MultimodalGP
-        # rest_band). No viscous column: fitted, it extrapolated far beyond the true damping at
-        # speed.
-        sign = dry_friction_sign(dq, friction_scale) if friction_sign is None else np.full_like(dq, friction_sign)
-    if mean_basis is not None:
-        basis = mean_basis.columns(robot, q, dq, ddq, tau_rbd, sign)
-    return Features(X, Y, tau_rbd, list(starts), basis=basis, has_sign=friction_scale is not None)
+    semiparametric: str = "none"
+    robot: object = None
+    friction_scale: np.ndarray | None = None
+    sign_fades: bool = True
+    mean_basis: MeanBasis | None = None
+
+    def __call__(self, q, dq, ddq, tau, starts=(0,), friction_sign=None, basis: bool = True) -> Features:
+        """Features at states q, dq, ddq and torques tau (T, n); ``friction_sign`` (+1 or -1, or
+        per sample (T, 1)) replaces the friction input (prediction on one sliding branch);
+        ``basis`` False: without the mean's columns."""
+        # Coulomb friction is a step in dq that an RBF kernel can only follow with a tiny velocity
+        # lengthscale, which then also lets the GP memorise pushes; a smooth-sign input gives the
+        # step to the GP directly, so lengthscales can stay long.
+        scale = self.friction_scale
+        parts = [q, dq, ddq]
+        if scale is not None:
+            if friction_sign is not None:
+                parts.append(np.full_like(dq, friction_sign))
+            else:
+                parts.append(sliding_sign(dq, scale) if self.sign_fades else np.tanh(dq / scale))
+        X = np.concatenate(parts, axis=1)
+        tau_rbd = None
+        if self.robot is not None and self.semiparametric != "none":
+            tau_rbd = self.robot.rnea(q, dq, ddq)
+            if self.semiparametric == "feature":
+                X = np.concatenate([X, tau_rbd], axis=1)
+        Y = tau - tau_rbd if (tau_rbd is not None and self.semiparametric == "residual") else tau
+        mean_basis = self.mean_basis if basis else None
+        columns, sign = None, None
+        if mean_basis is not None and mean_basis.friction:
+            if scale is None:
+                raise ValueError("a '+friction' mean basis needs the friction input (friction_scale)")
+            # Dry friction per joint, last: Coulomb (smooth sign) and load-dependent (sign x |tau_rbd|,
+            # gear friction growing with the load), as physics in the mean, so a sliding branch seen
+            # once is still predicted and the band at rest grows with the load (MultimodalGP
+            # rest_band). No viscous column: fitted, it extrapolated far beyond the true damping at
+            # speed.
+            sign = dry_friction_sign(dq, scale) if friction_sign is None else np.full_like(dq, friction_sign)
+        if mean_basis is not None:
+            columns = mean_basis.columns(self.robot, q, dq, ddq, tau_rbd, sign)
+        return Features(X, Y, tau_rbd, list(starts), basis=columns, has_sign=scale is not None)
+
+    def of_logs(self, logs: Sequence[RobotLog]) -> Features:
+        """Features of checked logs (joined in time order), with their times, log starts and
+        dead-banded torque channels (:func:`mmgp.data.channels.dead_banded`)."""
+        q, dq, ddq, tau = (np.concatenate([getattr(lg, a) for lg in logs]) for a in ("q", "dq", "ddq", "tau"))
+        starts = list(np.cumsum([0] + [lg.n_samples for lg in logs[:-1]]))
+        f = self(q, dq, ddq, tau, starts)
+        f.t = np.concatenate([lg.t for lg in logs])
+        f.muted = dead_banded(tau)
+        return f
 
 
 def sliding_sign(dq: np.ndarray, friction_scale: np.ndarray) -> np.ndarray:
