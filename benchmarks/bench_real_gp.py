@@ -74,7 +74,7 @@ def command(args: list[str]) -> float:
 def inputs(log, friction_scale):
     from mmgp.labelling.features import StateFeatures
 
-    return StateFeatures(friction_scale=friction_scale)(log.q, log.dq, log.ddq, log.tau).X
+    return StateFeatures("none", friction_scale=friction_scale)(log.q, log.dq, log.ddq, log.tau).X
 
 
 def exact_peer(X, Y, Xq, hyper_rows: int, objective: str, seed: int = 0):

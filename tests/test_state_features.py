@@ -28,7 +28,7 @@ def test_inputs_and_targets_against_closed_forms_and_pinocchio():
     np.testing.assert_allclose(f.Y, tau - rnea, rtol=1e-10, atol=1e-12)
     assert f.starts == [0, 20] and f.has_sign and f.basis is None
 
-    plain = StateFeatures(friction_scale=v_s, sign_fades=False)(q, dq, ddq, tau)     # the diagnosis's learner
+    plain = StateFeatures("none", friction_scale=v_s, sign_fades=False)(q, dq, ddq, tau)     # the diagnosis's learner
     np.testing.assert_array_equal(plain.X[:, 3], np.tanh(dq[:, 0] / v_s[0]))
     assert plain.tau_rbd is None and np.array_equal(plain.Y, tau)
 
@@ -47,7 +47,7 @@ def test_features_of_logs_join_them_in_time_order():
     t = np.arange(60) * 0.01
     logs = [log_from_arrays(t[:25], q[:25], tau[:25], dq=dq[:25], ddq=ddq[:25]),
             log_from_arrays(t[25:] - t[25], q[25:], tau[25:], dq=dq[25:], ddq=ddq[25:])]
-    f = StateFeatures(friction_scale=np.array([0.05]))
+    f = StateFeatures("none", friction_scale=np.array([0.05]))
     whole, joined = f(q, dq, ddq, tau), f.of_logs(logs)
     np.testing.assert_array_equal(joined.X, whole.X)
     assert joined.starts == [0, 25] and np.array_equal(joined.t, np.r_[t[:25], t[25:] - t[25]])

@@ -200,7 +200,7 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
     vs = smooth_sign_scale(dq)
     # the friction input without the fade at rest: the learner has no band for a stuck joint
-    X = StateFeatures(friction_scale=vs, sign_fades=False)(q, dq, ddq, resid).X[idx]
+    X = StateFeatures("none", friction_scale=vs, sign_fades=False)(q, dq, ddq, resid).X[idx]
     still = resting(rest_weight(dq, vs)).all(1)[idx]
     # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
     # sweeps (about 10 s on a 7-DOF log on one core). Otherwise training's inference (its trimmed

@@ -434,7 +434,7 @@ def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.
     from ..labelling.features import StateFeatures
 
     ctx, S, A, r, M = phys.ctx, phys.S, phys.A, prob.r, prob.M
-    X = StateFeatures()(ctx.q, ctx.dq, ctx.ddq, r).X
+    X = StateFeatures("none")(ctx.q, ctx.dq, ctx.ddq, r).X
     rng = np.random.default_rng(seed)
     sq = np.zeros(ctx.n)
     hyper = None

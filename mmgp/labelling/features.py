@@ -192,7 +192,7 @@ class StateFeatures:
     ``semiparametric`` "residual" (targets tau - RNEA), "feature" (RNEA as inputs) or "none";
     ``mean_basis`` the columns of each mode's linear mean (None: none)."""
 
-    semiparametric: str = "none"
+    semiparametric: str
     robot: object = None
     friction_scale: np.ndarray | None = None
     sign_fades: bool = True
