@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data.statistics import mad_sd
-from ..labelling.estep import runs_shorter_than, stretches
+from ..labelling.estep import runs_shorter_than, true_stretches
 
 #: the ``separate`` setting of the Diagnoser: method name -> what it does (as reported)
 SEPARATION_METHODS = {
@@ -34,12 +34,7 @@ SEPARATION_METHODS = {
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """Half-open index ranges [a, b) of the True stretches of ``mask`` (T,)."""
-    mask = np.asarray(mask, bool)
-    if not mask.any():
-        return []
-    first, length = stretches(mask)
-    keep = mask[first]
-    return [(int(a), int(a + n)) for a, n in zip(first[keep], length[keep])]
+    return true_stretches(mask)
 
 
 def spans_of(mask: np.ndarray, t: np.ndarray) -> list[tuple[float, float]]:
@@ -200,8 +195,8 @@ def em_separate(resid: np.ndarray, q: np.ndarray, dq: np.ndarray, ddq: np.ndarra
     idx = np.unique(np.linspace(0, T - 1, min(T, max_points)).round().astype(int))
     vs = smooth_sign_scale(dq)
     # the friction input without the fade at rest: the learner has no band for a stuck joint
-    X = StateFeatures("none", friction_scale=vs, sign_fades=False)(q, dq, ddq, resid).X[idx]
-    still = resting(rest_weight(dq, vs)).all(1)[idx]
+    X = StateFeatures("none", friction_scale=vs, sign_fades=False)(q[idx], dq[idx], ddq[idx], resid[idx]).X
+    still = resting(rest_weight(dq[idx], vs)).all(1)
     # a small learner: hyperparameter refits are >60% of its cost, and the labels settle in a few
     # sweeps (about 10 s on a 7-DOF log on one core). Otherwise training's inference (its trimmed
     # start, push-size floor, abstention and shortest push), since the robust fit of the effect

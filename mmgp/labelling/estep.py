@@ -71,6 +71,17 @@ def stretches(labels: np.ndarray, starts: Sequence[int] = (0,)) -> tuple[np.ndar
     return first, np.diff(np.r_[first, T])
 
 
+def true_stretches(mask: np.ndarray, starts: Sequence[int] = (0,)) -> list[tuple[int, int]]:
+    """Half-open index ranges [a, b) of the unbroken stretches of True in ``mask`` (T,); a
+    stretch also ends where a new log starts (``starts``)."""
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        return []
+    first, length = stretches(mask, starts)
+    keep = mask[first]
+    return [(int(a), int(a + n)) for a, n in zip(first[keep], length[keep])]
+
+
 def runs_shorter_than(flags: np.ndarray, min_len: float, starts: Sequence[int] = (0,)) -> np.ndarray:
     """(T,) bool: the samples of every unbroken stretch of True in ``flags`` (T,) that is shorter
     than ``min_len`` samples; a stretch ends where a new log starts (``starts``)."""

@@ -20,7 +20,7 @@ from ..gp.linalg import gaussian_logpdf
 from ..gp.sparse import make_gp
 from ..gp.windowed import windowed_predictive
 from ..physics.context import resting
-from .estep import stretches
+from .estep import true_stretches
 from .hmm import _transition_counts
 from ..data.regression import fit_basis_coefficients, fit_shared_coefficients
 
@@ -498,10 +498,8 @@ def hold_weights(rest: np.ndarray, starts: Sequence[int] = (0,)) -> np.ndarray:
     where N(0, Sigma_d) is denser than the band) was flagged whole, on logs without a push."""
     out = np.ones(rest.shape)
     for j in range(rest.shape[1]):
-        still = resting(rest[:, j])
-        first, length = stretches(still, starts)
-        for a, L in zip(first[still[first]], length[still[first]]):
-            out[a:a + L, j] = 1.0 / L
+        for a, b in true_stretches(resting(rest[:, j]), starts):
+            out[a:b, j] = 1.0 / (b - a)
     return out
 
 
@@ -516,11 +514,9 @@ def hold_windows(t: np.ndarray, still: np.ndarray, radius: float, starts: Sequen
     that held the arm for 1.8 s was explained by the rest of the same push."""
     t = np.asarray(t, dtype=np.float64)
     out = np.stack([t - radius, t + radius], 1)
-    still = np.asarray(still, bool)
-    first, length = stretches(still, starts)
-    for a, L in zip(first[still[first]], length[still[first]]):
-        out[a:a + L, 0] = np.minimum(out[a:a + L, 0], t[a])
-        out[a:a + L, 1] = np.maximum(out[a:a + L, 1], t[a + L - 1])
+    for a, b in true_stretches(still, starts):
+        out[a:b, 0] = np.minimum(out[a:b, 0], t[a])
+        out[a:b, 1] = np.maximum(out[a:b, 1], t[b - 1])
     return out
 
 
