@@ -35,6 +35,9 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    ``selection.gain_p``) at family-wise level ``alpha`` (Bonferroni over the
    candidates tried at that step); physical constraints must hold; nested effects (load
    dependence in Coulomb friction) are only tried as extensions. No magnitude threshold.
+   Where re-identifying the rigid body cuts a material share of what the library leaves without
+   being significant, a static effect (a spring, an offset) that the body makes unnecessary is
+   its stand-in: withheld, not reported (``Diagnoser._body_stand_ins``).
 4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
    GP (``mmgp.gp.exact.ExactGP``) on what is left; held-out normalised MSE per joint at three
    stages. Mode switches: one vs two payload modes per link (sticky two-state switching
@@ -280,6 +283,9 @@ class Diagnoser(BaseEstimator):
         if held is not None:
             lib = st.fit_library(prob, held, use, relinearise=2, init=init)
             phys, selector, dropped, rb_ev = self._select(prob, lib, use, start)
+        exclude, withheld = self._body_stand_ins(prob, lib, use, start, phys, reid)
+        if exclude:
+            phys, selector, dropped, rb_ev = self._select(prob, lib, use, start, exclude)
         laps("select_s")
         ms, pushes = self._mode_switch(prob, phys, pushes, laps)
         if ms is not None:
@@ -288,7 +294,8 @@ class Diagnoser(BaseEstimator):
             near = near_switches(ms, prob.t, prob.f_c, margin_s=prob.smear_s)
             (prob, body), use = st.with_modes(prob, ms), ~pushes.disturbed & ~near
             _stage("selecting effects again, with the modes")
-            phys, selector, dropped, rb_ev = self._select(prob, st.fit_library(prob, phys.ctx, use), use, start + body)
+            phys, selector, dropped, rb_ev = self._select(prob, st.fit_library(prob, phys.ctx, use), use, start + body,
+                                                          exclude)
             if pushes.disturbed.any():
                 pushes = st.confirm_pushes(prob, phys, pushes, near, push_alpha=self.push_alpha)
                 use = ~pushes.disturbed & ~near
@@ -309,7 +316,8 @@ class Diagnoser(BaseEstimator):
         info = {"velocity_delay_s": log.metadata.get("velocity_delay_s", {}),
                 "reidentification": reid, "coupling_search": coupling_ev, "dropped": [{"effect": f"{e.name}@{e.where(phys.ctx)}", "p_value": p}
                                                       for e, p in dropped]}
-        return self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info)
+        return dataclasses.replace(self._result(prob, phys, selector, pushes, ms, findings, fit, use, laps, info),
+                                   withheld=withheld)
 
     @staticmethod
     def _held_com_context(prob, phys, ctx, use):
@@ -344,12 +352,47 @@ class Diagnoser(BaseEstimator):
         prob, found, ev = coupling.find_couplings(prob, W, st.nominal_weights(prob), alpha=self.alpha, seed=self.seed)
         return coupling.motor_rest_masks(prob, found, rest_factor=self.rest_factor), found, ev
 
-    def _select(self, prob, lib, use, start):
-        """Forward selection from ``start`` on samples ``use``, nested extensions (load
-        dependence of a found Coulomb friction), backward pruning of effects whose own held-out
-        gain is not significant, the refit; then once more with the load of load-dependent
-        friction taken from the fitted model. The rigid body, when re-identified, is refitted
-        physically consistent."""
+    def _body_stand_ins(self, prob, lib, use, start, phys, reid: dict) -> tuple[list, list]:
+        """The effects of ``phys`` (chosen without the rigid body) that stand in for the body,
+        and their findings, withheld with the reason. Where the body's re-identification cuts a
+        material share (>= ``reid_min_gain``) of what the library leaves without being
+        significant, the body is not taken, and an effect whose torque at rest is a function of
+        the positions (``Effect.static``: a spring, an offset) may be taking the body's gravity
+        error. The effects are chosen once more with the body in the model: a static effect then
+        no longer chosen is the body's stand-in, left out of the selection and withheld, unless
+        its columns lie in the span of the body's base columns (then it is one of the body's own
+        base parameters under a physical name, the same torque whichever names it). Effects of
+        motion are kept: friction dissipates, which no rigid body does, and a geared joint's
+        rotor inertia is expected beside the body (benchmarks/README, "a static effect that
+        stands in for the body is withheld"). Returns (effects the selection leaves out, their
+        findings withheld)."""
+        from .reidentify import rigid_body
+
+        rb = rigid_body(prob.library)
+        if not rb or not reid or reid["re_identified"] or reid["held_out_gain"] < self.reid_min_gain:
+            return [], []
+        with_body = self._select(prob, lib, use, start + rb)[0]
+        dropped = [e for e in phys.chosen if e not in start and e.static and e not in with_body.chosen]
+        stand_ins = [e for e in dropped if not _in_body_span(prob, phys, e)]
+        reid["stand_ins"] = [f"{e.name}@{next(iter(e.where(phys.ctx).values()))}" for e in stand_ins]
+        if not stand_ins:
+            return [], []
+        why = (f"a stand-in for the rigid body: not chosen once the body is re-identified, whose held-out gain "
+               f"{reid['held_out_gain']:.1%} is material (>= {self.reid_min_gain:g}) but not significant "
+               f"(p {reid['p_value']:.2g} >= {reid['level']:.2g}); the data cannot tell the two apart")
+        findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(st.torque_variance(prob, use)))
+        ctx = phys.ctx
+        withheld = [{**f, "withheld_because": why} for f in findings
+                    if any(f["effect"] == e.name and all(f.get(k) == v for k, v in e.where(ctx).items())
+                           for e in stand_ins)]
+        return stand_ins, withheld
+
+    def _select(self, prob, lib, use, start, exclude=()):
+        """Forward selection from ``start`` on samples ``use`` among the candidates but
+        ``exclude``, nested extensions (load dependence of a found Coulomb friction), backward
+        pruning of effects whose own held-out gain is not significant, the refit; then once more
+        with the load of load-dependent friction taken from the fitted model. The rigid body,
+        when re-identified, is refitted physically consistent."""
         ctx, keys, A = lib.ctx, lib.keys, lib.A
         w = st.nominal_weights(prob, use)
         rounds = 2 if any(e.name == "load_dependent_friction" for e in prob.library) else 1
@@ -357,7 +400,8 @@ class Diagnoser(BaseEstimator):
             # robust weights of the whole library's fit: a push the separation missed does not
             # decide which effect wins
             grams = FoldGrams(A, prob.r, use, prob.folds, W=lib.weights)
-            selector = self._selector().fit(st.candidates(prob, start), keys, grams, w, ctx, start=start)
+            cands = [e for e in st.candidates(prob, start) if e not in exclude]
+            selector = self._selector().fit(cands, keys, grams, w, ctx, start=start)
             chosen = extend_nested(selector.selected_, prob.library, keys, grams, w, ctx, self.alpha)
             chosen, dropped = prune(chosen, keys, grams, w, self.alpha)
             phys = fit_physics(prob, st.LibraryFit(ctx, keys, A, lib.coef, lib.weights), grams, chosen, w, use,
@@ -448,6 +492,8 @@ class Diagnoser(BaseEstimator):
 
 
 FRICTION = ("coulomb_friction", "viscous_friction", "load_dependent_friction")
+# linear dependence up to rounding: the columns are built from the same states by one filter
+SPAN_RTOL = 1e-6
 
 
 def _friction_torque(phys) -> tuple[np.ndarray, np.ndarray]:
@@ -474,6 +520,20 @@ def _disturbance(pushes, t: np.ndarray) -> dict:
     return disturbance_finding(pushes.disturbed, spans_of(pushes.disturbed, t), evidence)
 
 
+def _in_body_span(prob, phys, effect) -> bool:
+    """Whether ``effect``'s columns lie in the span of the rigid body's base columns on the
+    log's valid equations (a least-squares fit by them leaves under ``SPAN_RTOL`` of each column's
+    norm): the two are then one parameter of the log's torque."""
+    index = {a: i for i, a in enumerate(phys.keys)}
+    rb = [i for i, a in enumerate(phys.keys) if a[0] == "rb"]
+    valid = prob.M > 0
+    B = phys.A[:, :, rb][valid]
+    E = phys.A[:, :, [index[a] for a in effect.atoms()]][valid]
+    coef = np.linalg.lstsq(B, E, rcond=None)[0]
+    left = np.linalg.norm(E - B @ coef, axis=0)
+    return bool(np.all(left <= SPAN_RTOL * np.maximum(np.linalg.norm(E, axis=0), 1e-300)))
+
+
 def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
     """``res`` with what fails the plausibility checks (the log's, ``mmgp.physics.plausibility``,
     and the answer's, ``plausibility.check``) withheld and the warnings in words."""
@@ -486,7 +546,7 @@ def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:
     log = log.replace(metadata={**log.metadata, "velocity_delay_s": delay}) if delay else log
     kept, withheld, warnings = check(res.findings, res.fit, res.joint_names, pin_model(robot),
                                      log_checks(log, res.joint_names, robot))
-    return dataclasses.replace(res, findings=kept, withheld=withheld, warnings=warnings)
+    return dataclasses.replace(res, findings=kept, withheld=res.withheld + withheld, warnings=warnings)
 
 
 def _read(log, robot):

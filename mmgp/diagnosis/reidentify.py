@@ -125,7 +125,7 @@ def reidentify(prob, lib, lib_rest, *, alpha: float, min_gain: float) -> tuple[l
     level = alpha / max(len(prob.library), 1)
     p, gain = signed_rank_p(e0 - e1), float((e0.sum() - e1.sum()) / max(e0.sum(), 1e-300))
     take = p < level and gain >= min_gain
-    ev = {"p_value": p, "held_out_gain": gain, "min_gain": min_gain, "re_identified": bool(take),
+    ev = {"p_value": p, "level": level, "held_out_gain": gain, "min_gain": min_gain, "re_identified": bool(take),
           "n_base_parameters": rb[0].base.n_base,
           "criterion": f"{len(prob.folds)}-fold time-block CV of the whole effect library with and without the "
                        f"rigid body (each relinearised at its own fit, each fold's masses physical, "

@@ -61,14 +61,15 @@ class Effect:
     ``units`` (contract parameter -> unit, in order; "" for dimensionless), ``scope`` ("joint"
     or "link"), ``supersedes`` (effects on the same index whose atoms are a subset of ours),
     ``requires`` (effects on the same index a model must hold before this one may extend it),
-    ``distal_tiebreak`` (of indices the data cannot tell apart, report the most distal),
-    ``linearised`` (columns depend on a point re-estimated from the fit: :meth:`relinearise`),
-    ``switchable`` (may take one of two values over the log: a mode-switch candidate),
+    ``distal_tiebreak`` (of indices the data cannot tell apart, report the most distal), ``linearised``
+    (columns depend on a point re-estimated from the fit: :meth:`relinearise`), ``switchable``
+    (may take one of two values over the log: a mode-switch candidate),
     ``sensor`` (an artefact of the logged signals, not a torque the joint transmits: left out of
     the load that load-dependent friction scales with), ``own_joint`` (its columns act on joint
     ``index``'s torque alone: its held-out gain is judged on that joint, ``selection.paired_gains``),
     ``own_family`` (a nonlinear parameter is searched: chosen in a family of its own after the
-    others, ``mmgp.diagnosis.coupling``, never a forward-selection candidate).
+    others, ``mmgp.diagnosis.coupling``, never a forward-selection candidate), ``static`` (at
+    rest its torque is a function of the positions, as gravity's is: what a body's error may look like).
 
     By default parameter i is the coefficient of atom i (``params``/``coefficients``); effects
     with another map override both.
@@ -86,6 +87,7 @@ class Effect:
     sensor: ClassVar[bool] = False
     own_joint: ClassVar[bool] = False
     own_family: ClassVar[bool] = False
+    static: ClassVar[bool] = False
 
     def __init_subclass__(cls, **declared):
         # a one-column effect is declared in its class statement: name=, label=, units=, kind=
@@ -275,6 +277,7 @@ class JointSpring(Effect):
     units = {"k": "N*m/rad", "q0": "rad"}
     supersedes = ("torque_offset",)
     own_joint = True
+    static = True
 
     def atoms(self):
         return (("q", self.index), ("one", self.index))
@@ -309,6 +312,7 @@ class EncoderOffset(Effect):
     name = "encoder_offset"
     label = "an encoder offset"
     units = {"offset": "rad"}
+    static = True
 
     def atoms(self):
         return (("enc", self.index),)
@@ -322,7 +326,7 @@ class EncoderOffset(Effect):
 
 
 class TorqueOffset(_JointColumnEffect, name="torque_offset", label="a torque-sensor offset",
-                   units={"offset": "N*m"}, kind="one", nonnegative=False, sensor=True):
+                   units={"offset": "N*m"}, kind="one", nonnegative=False, sensor=True, static=True):
     """Constant bias of the logged torque: logged tau = true tau + offset (N*m)."""
 
     def values(self, ctx):
