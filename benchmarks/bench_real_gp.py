@@ -90,7 +90,7 @@ def exact_peer(X, Y, Xq, hyper_rows: int, objective: str, seed: int = 0):
         rng = np.random.default_rng(seed)
         sub = np.sort(rng.choice(len(X), hyper_rows, replace=False))
         hyper = fit.fit(X[sub], Y[sub]).hyper_
-        gp = ExactGP(seed=seed).fit(X, Y, hyper=hyper, optimise=False)
+        gp = ExactGP(seed=seed, hyper=hyper, optimise=False).fit(X, Y)
     return gp.predict(Xq, return_std=False), time.perf_counter() - t0
 
 

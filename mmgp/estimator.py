@@ -407,12 +407,11 @@ class MultimodalGP(BaseEstimator):
         if self._gps[mode] is None:
             kind = self.gp_kinds_[mode]
             gp = make_gp(len(self.support_Y_[mode]), method=kind, device=self.device, ard=self.ard, seed=self.seed,
-                         n_inducing=self.n_inducing, n_subset=self.n_inducing)
+                         n_inducing=self.n_inducing, n_subset=self.n_inducing, hyper=self.hypers_[mode], optimise=False)
             extra = {"inducing": self.inducing_[mode]} if kind == "sgpr" else {}
             if kind == "exact":  # solved weights stored with the model, where it has them
                 extra["weights"] = (getattr(self, "gp_weights_", None) or [None] * self.n_modes_)[mode]
-            self._gps[mode] = gp.fit(self.support_X_[mode], self.support_Y_[mode], hyper=self.hypers_[mode],
-                                     optimise=False, **extra)
+            self._gps[mode] = gp.fit(self.support_X_[mode], self.support_Y_[mode], **extra)
         return self._gps[mode]
 
     def predict(self, q, dq, ddq, mode: int = 0, return_std: bool = True):

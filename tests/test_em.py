@@ -250,7 +250,7 @@ def test_gibbs_conditional_with_loo_gp_equals_enumeration(monkeypatch):
             logp = np.empty(2)
             for k in range(2):
                 members = np.flatnonzero(w == k)
-                gp = ExactGP().fit(x[members, None], y[members], hyper=hyper, optimise=False)
+                gp = ExactGP(hyper=hyper, optimise=False).fit(x[members, None], y[members])
                 if w[t] == k:
                     mu, sd = gp.loo_predictive()
                     i = int(np.flatnonzero(members == t)[0])
@@ -297,7 +297,7 @@ def toy_support(N=40, seed=0):
 def test_windowed_predictive_equals_brute_force_refits(radius):
     ts, X, Y = toy_support()
     hyper = Hyper(np.array([[0.7, 1.2], [0.9, 0.5]]), np.array([1.1, 0.8]), np.array([0.02, 0.05]))
-    gp = ExactGP().fit(X, Y, hyper=hyper, optimise=False)
+    gp = ExactGP(hyper=hyper, optimise=False).fit(X, Y)
     rng = np.random.default_rng(1)
     tq = np.concatenate([ts[::3], rng.uniform(-1, 11, 10), ts[:2] + radius])   # members, others, window edges
     Xq = np.column_stack([np.sin(tq), np.cos(0.7 * tq) * 3.0]) + 0.05 * rng.normal(size=(len(tq), 2))
@@ -513,7 +513,7 @@ def test_windowed_predictive_own_windows_equal_brute_force_refits():
     points inside it out: against refits on the rest, window by window."""
     ts, X, Y = toy_support()
     hyper = Hyper(np.array([[0.7, 1.2], [0.9, 0.5]]), np.array([1.1, 0.8]), np.array([0.02, 0.05]))
-    gp = ExactGP().fit(X, Y, hyper=hyper, optimise=False)
+    gp = ExactGP(hyper=hyper, optimise=False).fit(X, Y)
     rng = np.random.default_rng(3)
     tq = np.concatenate([ts[::2], rng.uniform(-1, 11, 8)])
     Xq = np.column_stack([np.sin(tq), np.cos(0.7 * tq) * 3.0]) + 0.05 * rng.normal(size=(len(tq), 2))

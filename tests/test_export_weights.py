@@ -54,11 +54,11 @@ def test_stored_weights_predict_without_factorising(monkeypatch):
     assert w.shape == (2, 300)
 
     monkeypatch.setattr(exact, "robust_cholesky", _no_factorisation)
-    again = ExactGP().fit(X, Y, hyper=first.hyper_, optimise=False, weights=w)
+    again = ExactGP(hyper=first.hyper_, optimise=False).fit(X, Y, weights=w)
     # closed form vs stored weights: both exact, they differ by rounding (kernel ~1, |y| ~1)
     np.testing.assert_allclose(again.predict(Xq, return_std=False), ref, rtol=0, atol=1e-8)
     with pytest.raises(ValueError, match="weights must be"):
-        ExactGP().fit(X, Y, hyper=first.hyper_, optimise=False, weights=w[:, :10])
+        ExactGP(hyper=first.hyper_, optimise=False).fit(X, Y, weights=w[:, :10])
 
 
 def test_cross_kernel_is_the_rbf_kernel():

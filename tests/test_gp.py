@@ -41,7 +41,7 @@ def data_unit_kernel(gp, j, A, B):
 
 def test_loo_closed_form_matches_brute_force_refits():
     X, Y = toy()
-    gp = ExactGP().fit(X, Y, hyper=fixed_hyper(2, 2), optimise=False)
+    gp = ExactGP(hyper=fixed_hyper(2, 2), optimise=False).fit(X, Y)
     mean, std = gp.loo_predictive()
     lpd = gp.loo_log_predictive()
     N = X.shape[0]
@@ -67,7 +67,7 @@ def test_predictions_match_sklearn_at_fixed_hyperparameters(include_noise):
     X, Y = toy(N=50)
     Xq = np.random.default_rng(1).uniform(-2, 2, size=(30, 2)) * [1, 2]
     hyp = fixed_hyper(2, 2)
-    gp = ExactGP().fit(X, Y, hyper=hyp, optimise=False)
+    gp = ExactGP(hyper=hyp, optimise=False).fit(X, Y)
     mean, std = gp.predict(Xq, include_noise=include_noise)
     for j in range(2):
         # sklearn's normalize_y uses the same mean/population-std scaling of y, so the kernel
@@ -210,7 +210,7 @@ def test_duplicated_inputs_with_tiny_noise_factorise_with_jitter():
     X = np.repeat(X, 3, axis=0)  # every input three times: K is singular without noise
     Y = np.repeat(Y, 3, axis=0)
     hyp = Hyper(np.ones((2, 2)), np.ones(2), np.zeros(2))  # noise-free: K has rank 30 of 90
-    gp = ExactGP().fit(X, Y, hyper=hyp, optimise=False)
+    gp = ExactGP(hyper=hyp, optimise=False).fit(X, Y)
     assert gp.jitter_ > 0
     mean, std = gp.predict(X[:5])
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(std))
@@ -228,20 +228,20 @@ def test_hopeless_matrix_raises_clear_error():
     X, Y = toy(N=20)
     X[3, 1] = np.nan
     with pytest.raises(GPNumericalError):
-        ExactGP().fit(X, Y, hyper=fixed_hyper(2, 2), optimise=False)
+        ExactGP(hyper=fixed_hyper(2, 2), optimise=False).fit(X, Y)
 
 
 def test_batched_outputs_equal_single_output_fits():
     X, Y = toy(N=60, noise=0.1)
     Xq = X[:7] + 0.1
     hyp = fixed_hyper(2, 2)
-    both = ExactGP().fit(X, Y, hyper=hyp, optimise=False)
+    both = ExactGP(hyper=hyp, optimise=False).fit(X, Y)
     mean, std = both.predict(Xq)
     lm, ls = both.loo_predictive()
     opt_both = ExactGP(coarse_fit_points=0).fit(X, Y)
     for j in range(2):
         hj = Hyper(hyp.lengthscale[j:j + 1], hyp.signal_var[j:j + 1], hyp.noise_var[j:j + 1])
-        one = ExactGP().fit(X, Y[:, j], hyper=hj, optimise=False)
+        one = ExactGP(hyper=hj, optimise=False).fit(X, Y[:, j])
         m1, s1 = one.predict(Xq)
         assert m1.shape == (7,)
         np.testing.assert_allclose(mean[:, j], m1, rtol=1e-12, atol=1e-12)
@@ -261,8 +261,8 @@ from mmgp.gp.sparse import EXACT_MAX_SAMPLES, SparseGP, make_gp
 def test_sparse_gp_with_all_inputs_inducing_equals_exact_gp():
     X, Y = toy(N=40)
     hyp = Hyper(np.full((2, 2), 0.7), np.ones(2), np.array([0.05, 0.02]))
-    ex = ExactGP().fit(X, Y, hyper=hyp, optimise=False)
-    sp = SparseGP(n_inducing=len(X)).fit(X, Y, hyper=hyp, optimise=False)  # Z = X: Qff = Kff
+    ex = ExactGP(hyper=hyp, optimise=False).fit(X, Y)
+    sp = SparseGP(n_inducing=len(X), hyper=hyp, optimise=False).fit(X, Y)  # Z = X: Qff = Kff
     Xq = X[:9] + 0.05
     for a, b in zip(ex.predict(Xq, include_noise=True), sp.predict(Xq, include_noise=True)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6 * np.abs(Y).max())
@@ -275,7 +275,7 @@ def test_sparse_gp_matches_dense_sgpr_formulas_and_dtc_loo_refits():
     X, Y = toy(N=60, m=1)
     y = Y[:, 0]
     hyp = Hyper(np.array([[0.9, 1.4]]), np.array([1.3]), np.array([0.03]))
-    sp = SparseGP(n_inducing=12).fit(X, y, hyper=hyp, optimise=False)
+    sp = SparseGP(n_inducing=12, hyper=hyp, optimise=False).fit(X, y)
     assert sp.Z_.shape == (12, 2)
     # dense numpy reference in standardised units, from the textbook SGPR / DTC expressions
     Xs, Z = sp.x_scaler_.transform(X), sp.Z_
@@ -324,7 +324,7 @@ def test_make_gp_switches_at_threshold_and_sparse_fit_is_accurate(monkeypatch):
 def test_subset_method_loo_is_exact_on_subset_and_held_out_elsewhere():
     X, Y = toy(N=120)
     hyp = fixed_hyper(2, 2)
-    sp = SparseGP(method="subset", n_subset=50).fit(X, Y, hyper=hyp, optimise=False)
+    sp = SparseGP(method="subset", n_subset=50, hyper=hyp, optimise=False).fit(X, Y)
     lm, lsd = sp.loo_predictive()
     sub = sp.subset_
     rest = np.setdiff1d(np.arange(len(X)), sub)
@@ -439,3 +439,31 @@ def test_restart_from_best_output_keeps_each_outputs_better_optimum():
     assert [v for _, v in out] == [0.4, 0.9, -1.0, 0.5]
     failed = [one(1.0, float("nan")), one(2.0, float("nan"))]
     assert restart_from_best_output(failed, climb) == failed
+
+
+def test_hyperparameters_are_settings_not_fit_arguments():
+    """scikit-learn's shape (its GaussianProcessRegressor takes the kernel and ``optimizer=None``
+    in the constructor): the starting or fixed hyperparameters and whether to optimise them are
+    constructor settings that ``get_params``/``clone`` carry; ``fit`` takes data only."""
+    import inspect
+
+    from sklearn.base import clone
+
+    for cls in (ExactGP, SparseGP):
+        assert set(inspect.signature(cls.fit).parameters) <= {"self", "X", "Y", "weights", "inducing", "t"}
+    X, Y = toy()
+    hyp = fixed_hyper(2, 2)
+    gp = ExactGP(hyper=hyp, optimise=False)
+    twin = clone(gp)
+    assert twin.get_params()["optimise"] is False and twin.hyper is not hyp
+    np.testing.assert_array_equal(twin.hyper.lengthscale, hyp.lengthscale)
+    # kept as given: the fitted hyperparameters are the given ones, untouched by the data
+    fitted = twin.fit(X, Y).hyper_
+    for a, b in zip((fitted.lengthscale, fitted.signal_var, fitted.noise_var),
+                    (hyp.lengthscale, hyp.signal_var, hyp.noise_var)):
+        np.testing.assert_array_equal(a, b)
+    # a warm start climbs from the given values: its leave-one-out log predictive (the objective,
+    # on all 40 samples) is at least the given values' own
+    warm = ExactGP(hyper=hyp).fit(X, Y)
+    assert not np.array_equal(warm.hyper_.lengthscale, hyp.lengthscale)
+    assert warm.loo_log_predictive() >= twin.loo_log_predictive()

@@ -116,14 +116,14 @@ def test_default_device_reaches_gps_built_without_one():
     X, Y = toy(N=30)
     hyp = Hyper(np.full((2, 2), 0.8), np.ones(2), np.full(2, 0.05))
     with default_device("cpu"):
-        assert ExactGP().fit(X, Y, hyper=hyp, optimise=False).dev_ == torch.device("cpu")
+        assert ExactGP(hyper=hyp, optimise=False).fit(X, Y).dev_ == torch.device("cpu")
     assert resolve_device(None) == torch.device("cpu")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA device"):
             with default_device("cuda"):
                 pass
         with pytest.raises(ValueError, match="no CUDA device"):
-            ExactGP(device="cuda").fit(X, Y, hyper=hyp, optimise=False)
+            ExactGP(device="cuda", hyper=hyp, optimise=False).fit(X, Y)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without a GPU")
@@ -178,7 +178,7 @@ def test_per_output_exact_gp_matches_the_closed_form(monkeypatch):
     X, Y = toy(N=70)
     Xq = toy(N=15, seed=3)[0]
     hyp = Hyper(np.array([[0.7, 1.1], [1.3, 0.6]]), np.array([1.2, 0.8]), np.array([0.04, 0.02]))
-    gp = ExactGP().fit(X, Y, hyper=hyp, optimise=False)
+    gp = ExactGP(hyper=hyp, optimise=False).fit(X, Y)
     assert gp.per_output_ and gp.L_ is None
     ref = numpy_gp(gp, X, Y, Xq)
     mean_only = gp.predict(Xq, return_std=False)             # no factorisation needed for the mean...
@@ -196,7 +196,7 @@ def test_chunked_sgpr_matches_dense_formulas(monkeypatch):
     X, Y = toy(N=300, m=1)
     y = Y[:, 0]
     hyp = Hyper(np.array([[0.9, 1.4]]), np.array([1.3]), np.array([0.03]))
-    sp = SparseGP(n_inducing=12).fit(X, y, hyper=hyp, optimise=False)
+    sp = SparseGP(n_inducing=12, hyper=hyp, optimise=False).fit(X, y)
     Xs, Z = sp.x_scaler_.transform(X), sp.Z_
     ys = (y - sp.y_scaler_.mean_[0]) / sp.y_scaler_.scale_[0]
     k = lambda A, B: 1.3 * np.exp(-0.5 * (((A[:, None] - B[None]) / hyp.lengthscale[0]) ** 2).sum(-1))  # noqa: E731
@@ -214,7 +214,7 @@ def test_chunked_sgpr_matches_dense_formulas(monkeypatch):
     np.testing.assert_allclose(lm, (ys - P @ ys / np.diag(P)) * sc + sp.y_scaler_.mean_[0], rtol=1e-6, atol=1e-6 * sc)
     np.testing.assert_allclose(lsd, np.sqrt(1.0 / np.diag(P)) * sc, rtol=1e-6)
     # inducing inputs given back in data units reproduce the same model
-    twin = SparseGP(n_inducing=12).fit(X, y, hyper=hyp, optimise=False, inducing=sp.inducing_)
+    twin = SparseGP(n_inducing=12, hyper=hyp, optimise=False).fit(X, y, inducing=sp.inducing_)
     np.testing.assert_allclose(twin.predict(Xq)[1], sp.predict(Xq)[1], rtol=1e-10)
 
 

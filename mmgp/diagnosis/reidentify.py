@@ -37,8 +37,8 @@ def admissible_side(prob, fit, library, body: bool) -> tuple[np.ndarray, dict]:
     body physically consistent, and every mass, added or a link's, at most the nominal robot's
     own (the plausibility rule of a payload). The other effects' signs are left free on both sides:
     held non-negative, the library alone cannot take what a negative armature or spring fits, and
-    the body is credited with it as a lighter link (val01, a lever whose URDF is right: the
-    body's p 0.066 -> 0.0013 at gain 0.38, taken)."""
+    the body is credited with it as a lighter link, on a lever whose URDF is right
+    (benchmarks/README.md, "2026-11-28 sixth session: held-pose payload")."""
     from .stages import rigid_regressor
 
     ctx = fit.ctx

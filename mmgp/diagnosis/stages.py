@@ -459,7 +459,7 @@ def gp_stage_errors(prob: Problem, phys: PhysicsFit, use: np.ndarray, denom: np.
                          seed=seed).fit(X[sub], res_tr[pos])
             hyper = gp.hyper_
         else:
-            gp = ExactGP(seed=seed).fit(X[sub], res_tr[pos], hyper=hyper, optimise=False)
+            gp = ExactGP(seed=seed, hyper=hyper, optimise=False).fit(X[sub], res_tr[pos])
         mu = gp.predict(X[te], return_std=False)
         sq += (M[te] * (res_te - mu) ** 2).sum(0)
     return _nmse(sq, (M * use[:, None] > 0).sum(0), denom, ctx.joint_names)

@@ -54,7 +54,7 @@ def _fit_gp(X: np.ndarray, Y: np.ndarray, t: np.ndarray, opts: dict, hyper_fit: 
     k = min(len(X), int(gp.max_fit_points))
     fit_idx = np.unique(np.linspace(0, len(X) - 1, k).round().astype(int))
     hyper = gp.block_hyper(X[fit_idx], Y[fit_idx], t[fit_idx], block_s)
-    return ExactGP(**opts).fit(X, Y, hyper=hyper, optimise=False)
+    return ExactGP(**opts, hyper=hyper, optimise=False).fit(X, Y)
 
 
 def compare(log: RobotLog, robot=None, *, n_folds: int = 5, gap: int | None = None, max_train: int = 2000,

@@ -144,7 +144,7 @@ def _fold_gp(model, k: int, X: np.ndarray, Y: np.ndarray) -> ExactGP:
     rx, ry = g.x_scaler_.scale_ / sx, (g.y_scaler_.scale_ / sy) ** 2
     h = g.hyper_
     hyper = Hyper(np.asarray(h.lengthscale) * rx[None, :], np.asarray(h.signal_var) * ry, np.asarray(h.noise_var) * ry)
-    return ExactGP(ard=model.ard, device=model.device).fit(X, Y, hyper=hyper, optimise=False)
+    return ExactGP(ard=model.ard, device=model.device, hyper=hyper, optimise=False).fit(X, Y)
 
 
 def _rigid_body(model, tau: np.ndarray) -> np.ndarray | None:

@@ -61,7 +61,8 @@ class StandardisedRBFGP(BaseEstimator):
                  max_iter: int = _GP.max_iter, noise_floor: float = _GP.noise_floor, device: str | None = None,
                  seed: int = _GP.seed, coarse_fit_points: int = _GP.coarse_fit_points,
                  independent_outputs: bool = _GP.independent_outputs, refine_rounds: int = _GP.refine_rounds,
-                 shared_starts: bool = _GP.shared_starts, block_s: float = _GP.block_s):
+                 shared_starts: bool = _GP.shared_starts, block_s: float = _GP.block_s, hyper: Hyper | None = None,
+                 optimise: bool = _GP.optimise):
         self.ard = ard
         self.objective = objective
         self.max_fit_points = max_fit_points
@@ -74,15 +75,18 @@ class StandardisedRBFGP(BaseEstimator):
         self.refine_rounds = refine_rounds
         self.shared_starts = shared_starts
         self.block_s = block_s
+        self.hyper = hyper
+        self.optimise = optimise
 
     def _procedure(self) -> HyperProcedure:
         """This GP's settings of the hyperparameter procedure."""
         return HyperProcedure(**{f.name: getattr(self, f.name) for f in fields(HyperProcedure)})
 
-    def _fit_standardised(self, X, Y, hyper: Hyper | None, optimise: bool, t: np.ndarray | None = None):
+    def _fit_standardised(self, X, Y, t: np.ndarray | None = None):
         """Checked X (N, d), Y (N, m) and their standardised tensors; sets ``dev_``, the scalers,
-        ``hyper_`` (given, default or optimised; by leave-block-out with times ``t`` (N,) s and
-        ``block_s`` > 0) and ``objective_value_``."""
+        ``hyper_`` (``hyper`` or the default, optimised from there when ``optimise``; by
+        leave-block-out with times ``t`` (N,) s and ``block_s`` > 0) and ``objective_value_``."""
+        hyper = self.hyper
         X, Y, self._vector_output = check_xy(X, Y)
         self.dev_ = resolve_device(self.device)
         self.x_scaler_ = Standardiser().fit(X)
@@ -91,7 +95,7 @@ class StandardisedRBFGP(BaseEstimator):
         Ys = torch.as_tensor(self.y_scaler_.transform(Y), dtype=DTYPE, device=self.dev_)
         init = hyper if hyper is not None else default_hyper(X.shape[1], Y.shape[1])
         self.objective_value_ = float("nan")
-        if optimise:
+        if self.optimise:
             if t is not None and np.shape(t) != (X.shape[0],):
                 raise ValueError(f"t must be (N,) = ({X.shape[0]},), got {np.shape(t)}")
             init, self.objective_value_ = fit_hyper_subsets(Xs, Ys, init, warm=hyper is not None,
@@ -120,9 +124,11 @@ class StandardisedRBFGP(BaseEstimator):
         predictive (:func:`mmgp.gp.objectives.leave_block_out`, blocks of ``block_s`` s) of X
         (N, d) -> Y (N, m) sampled at times ``t`` (N,) s, climbed from ``hyper`` (None: the
         default start) for at most ``max_iter`` iterations (None: this GP's ``max_iter``; the noise
-        floor None: its ``noise_floor``). Conditions this GP on X, Y (without optimising) for their
-        standardisation: refit it on what it should predict from."""
-        self.fit(X, Y, hyper=hyper or default_hyper(X.shape[1], np.atleast_2d(Y.T).shape[0]), optimise=False)
+        floor None: its ``noise_floor``). Conditions this GP on X, Y for their standardisation
+        (its ``hyper`` set to the start, ``optimise`` off): set its settings and refit it on what
+        it should predict from."""
+        start = hyper or default_hyper(X.shape[1], np.atleast_2d(Y.T).shape[0])
+        self.set_params(hyper=start, optimise=False).fit(X, Y)
         out, _ = optimise_hyper(self.Xs_, self.Ys_, self.hyper_, objective=leave_block_out(t, block_s),
                                 max_iter=self.max_iter if max_iter is None else max_iter,
                                 noise_floor=self.noise_floor if noise_floor is None else noise_floor)
@@ -170,6 +176,10 @@ class ExactGP(StandardisedRBFGP):
         :func:`mmgp.gp.hyper.restart_from_best_output`); default False.
     device : torch device ("cpu", "cuda", "auto"); None (default): the block's default
         (:func:`mmgp.gp.linalg.default_device`), "cpu" outside one.
+    hyper : hyperparameters (:class:`mmgp.gp.hyper.Hyper`, standardised units) the fit starts
+        from (a warm start), or keeps with ``optimise=False``; None (default): the default start.
+    optimise : whether ``fit`` optimises the hyperparameters (default True); False keeps ``hyper``
+        (or the default start) as they are.
 
     Memory: while the kernel matrices of all outputs take at most :data:`BATCHED_BYTES` they are
     factorised together (m, N, N); larger fits keep one output's (N, N) factor at a time, made
@@ -180,14 +190,14 @@ class ExactGP(StandardisedRBFGP):
     data units, ``objective_value_`` (per-sample objective on the fitting subset), ``per_output_``.
     """
 
-    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True,
-            weights: np.ndarray | None = None, t: np.ndarray | None = None) -> "ExactGP":
-        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes hyperparameters.
-        ``t`` (N,) s, increasing: sample times for the leave-block-out objective (``block_s``).
-        ``weights`` (m, N): what :meth:`solved_weights` returned for the same X, Y and ``hyper``
-        (``optimise=False``); a large fit (``per_output_``) then predicts its mean without
-        factorising, which is what costs O(N^3) per output."""
-        _, _, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise, t)
+    def fit(self, X: np.ndarray, Y: np.ndarray, *, weights: np.ndarray | None = None,
+            t: np.ndarray | None = None) -> "ExactGP":
+        """X (N, d), Y (N, m) or (N,). ``t`` (N,) s, increasing: sample times for the
+        leave-block-out objective (``block_s``). ``weights`` (m, N): what :meth:`solved_weights`
+        returned for the same X, Y and ``hyper`` (``optimise=False``); a large fit
+        (``per_output_``) then predicts its mean without factorising, which is what costs
+        O(N^3) per output."""
+        _, _, Xs, Ys = self._fit_standardised(X, Y, t)
         self._condition(Xs, Ys)
         if weights is not None and self.per_output_:
             if np.shape(weights) != (Ys.shape[1], Ys.shape[0]):

@@ -3,7 +3,8 @@
 :class:`HyperProcedure` is what :func:`mmgp.gp.hyper.fit_hyper_subsets` does with a GP's data:
 subset sizes, L-BFGS iterations, the objective ("loo" or "marginal"; leave-block-out of
 ``block_s`` seconds when times are given), ARD, the noise floor, the subsets' seed, independent
-outputs, refinement rounds and shared starts. Its defaults are those of
+outputs, refinement rounds and shared starts, and whether it runs at all (``optimise``; False:
+the GP keeps the hyperparameters it is given). Its defaults are those of
 :class:`mmgp.gp.exact.ExactGP`, :class:`mmgp.gp.sparse.SparseGP` and the GP settings
 :class:`mmgp.MultimodalGP` exposes (``ard``, ``objective``), which are written ``GP_DEFAULTS.<name>``.
 """
@@ -27,6 +28,7 @@ class HyperProcedure:
     refine_rounds: int = 1
     shared_starts: bool = False
     block_s: float = 0.0
+    optimise: bool = True
 
 
 #: the defaults every RBF GP setting is written as (``GP_DEFAULTS.<name>``)

@@ -93,29 +93,29 @@ class SparseGP(StandardisedRBFGP):
                  seed: int = _GP.seed, coarse_fit_points: int = _GP.coarse_fit_points,
                  independent_outputs: bool = _GP.independent_outputs, n_inducing: int = 1000,
                  method: str = "sgpr", n_subset: int = 3000, refine_rounds: int = _GP.refine_rounds,
-                 shared_starts: bool = _GP.shared_starts, block_s: float = _GP.block_s):
+                 shared_starts: bool = _GP.shared_starts, block_s: float = _GP.block_s, hyper: Hyper | None = None,
+                 optimise: bool = _GP.optimise):
         super().__init__(ard=ard, objective=objective, max_fit_points=max_fit_points, max_iter=max_iter,
                          noise_floor=noise_floor, device=device, seed=seed, coarse_fit_points=coarse_fit_points,
                          independent_outputs=independent_outputs, refine_rounds=refine_rounds,
-                         shared_starts=shared_starts, block_s=block_s)
+                         shared_starts=shared_starts, block_s=block_s, hyper=hyper, optimise=optimise)
         self.method = method
         self.n_subset = n_subset
         self.n_inducing = n_inducing
 
-    def fit(self, X: np.ndarray, Y: np.ndarray, *, hyper: Hyper | None = None, optimise: bool = True,
-            inducing: np.ndarray | None = None, t: np.ndarray | None = None) -> "SparseGP":
-        """X (N, d), Y (N, m) or (N,). ``hyper`` (standardised units) warm-starts or fixes
-        hyperparameters; ``inducing`` (M, d) in data units replaces the k-means inputs (e.g. a
-        saved model's ``inducing_``); ``t`` (N,) s as in :meth:`ExactGP.fit`."""
+    def fit(self, X: np.ndarray, Y: np.ndarray, *, inducing: np.ndarray | None = None,
+            t: np.ndarray | None = None) -> "SparseGP":
+        """X (N, d), Y (N, m) or (N,). ``inducing`` (M, d) in data units replaces the k-means
+        inputs (e.g. a saved model's ``inducing_``); ``t`` (N,) s as in :meth:`ExactGP.fit`."""
         if self.method not in ("sgpr", "subset"):
             raise ValueError(f"method must be 'sgpr' or 'subset', got {self.method!r}")
         # Same procedure as ExactGP: the exact GP's hyperparameters on a subset.
-        X, Y, Xs, Ys = self._fit_standardised(X, Y, hyper, optimise, t)
+        X, Y, Xs, Ys = self._fit_standardised(X, Y, t)
         if self.method == "subset":
             rng = np.random.default_rng(self.seed + 1)
             self.subset_ = np.sort(rng.choice(len(X), min(self.n_subset, len(X)), replace=False))
-            self.exact_ = ExactGP(device=self.device).fit(X[self.subset_], Y[self.subset_], hyper=self.hyper_,
-                                                          optimise=False)
+            self.exact_ = ExactGP(device=self.device, hyper=self.hyper_, optimise=False).fit(X[self.subset_],
+                                                                                            Y[self.subset_])
             self._X, self._Y = X, Y
             return self
         if inducing is None:

@@ -92,8 +92,8 @@ def _variance_gp(sem, k: int):
     if isinstance(gp, ExactGP) and len(Xs) <= VARIANCE_SUPPORT:
         return gp
     sub = evenly_spaced(np.arange(len(Xs)), VARIANCE_SUPPORT)
-    small = ExactGP(ard=gp.ard, independent_outputs=True, seed=0, device=str(gp.dev_))
-    return small.fit(Xs[sub], Ys[sub], hyper=gp.hyper_, optimise=False)
+    small = ExactGP(ard=gp.ard, independent_outputs=True, seed=0, device=str(gp.dev_), hyper=gp.hyper_, optimise=False)
+    return small.fit(Xs[sub], Ys[sub])
 
 
 def _odd_z(sem, k: int, rows: np.ndarray, X: np.ndarray, basis, rev: VelocityReversal, dq: np.ndarray,

@@ -217,8 +217,8 @@ class ModeFitter:
         if hyper is None and self.t_axis is not None:
             t = self.t_axis[members]
             kw["block_s"] = honest_block_s(t, self.X[members])
-        gp = make_gp(len(members), method=s.gp_method, **kw)
-        return gp.fit(self.X[members], Y[members], hyper=hyper, optimise=hyper is None, t=t)
+        gp = make_gp(len(members), method=s.gp_method, hyper=hyper, optimise=hyper is None, **kw)
+        return gp.fit(self.X[members], Y[members], t=t)
 
     @property
     def stuck_aware(self) -> bool:
@@ -346,7 +346,7 @@ class ModeFitter:
         if windowed and optimise:
             hyper = self._windowed_hyper(gp, Y, support, hyper)
             optimise = False
-        gp.fit(X[support], Y[support], hyper=hyper, optimise=optimise)
+        gp.set_params(hyper=hyper, optimise=optimise).fit(X[support], Y[support])
         if windowed:
             mean, var = windowed_predictive(gp, X, self.t_axis, self.t_axis[support], s.exclusion_s,
                                             windows=self.windows)
