@@ -56,6 +56,9 @@ def test_a_static_stand_in_for_the_body_is_withheld(robots):
     assert not [f for f in res.findings_ if f["effect"] in STATIC]
     withheld = [f for f in res.result_.withheld if "stand-in for the rigid body" in f["withheld_because"]]
     assert withheld and all(f["effect"] in STATIC for f in withheld)
+    # told in words an engineer can act on: where, that it is not reported, what would tell them apart
+    assert all(f["explanation"].startswith(f["joint"]) and "not reported" in f["explanation"]
+               and "wider range" in f["explanation"] for f in withheld)
     assert reid["stand_ins"] == [f"{f['effect']}@{f['joint']}" for f in withheld]
 
 

@@ -66,7 +66,7 @@ from . import coupling
 from .fitting import effect_findings, fit_physics
 from .modes import near_switches
 from .reidentify import consistent_refit, model_torque, reidentify
-from .result import DiagnosisResult, disturbance_finding, mode_effect_findings, mode_switch_finding
+from .result import DiagnosisResult, disturbance_finding, mode_effect_findings, mode_switch_finding, stand_in_finding
 from .selection import FoldGrams, ForwardCVSelector, extend_nested, prune
 from .separation import SEPARATION_METHODS, runs, spans_of
 
@@ -377,12 +377,9 @@ class Diagnoser(BaseEstimator):
         reid["stand_ins"] = [f"{e.name}@{next(iter(e.where(phys.ctx).values()))}" for e in stand_ins]
         if not stand_ins:
             return [], []
-        why = (f"a stand-in for the rigid body: not chosen once the body is re-identified, whose held-out gain "
-               f"{reid['held_out_gain']:.1%} is material (>= {self.reid_min_gain:g}) but not significant "
-               f"(p {reid['p_value']:.2g} >= {reid['level']:.2g}); the data cannot tell the two apart")
         findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(st.torque_variance(prob, use)))
         ctx = phys.ctx
-        withheld = [{**f, "withheld_because": why} for f in findings
+        withheld = [stand_in_finding(f, reid) for f in findings
                     if any(f["effect"] == e.name and all(f.get(k) == v for k, v in e.where(ctx).items())
                            for e in stand_ins)]
         return stand_ins, withheld

@@ -28,6 +28,22 @@ def effect_finding(effect, params: dict, std: dict, evidence: dict, ctx, main_jo
             "explanation": f"{effect.describe(params, std, ctx)} is missing from the model; {tail}."}
 
 
+def stand_in_finding(f: dict, reid: dict) -> dict:
+    """Finding ``f`` withheld as the rigid body's stand-in (``Diagnoser._body_stand_ins``), in
+    words an engineer can act on; ``reid`` the body's re-identification evidence."""
+    where = f.get("joint") or f.get("link")
+    red = 100 * f["evidence"]["cv_error_reduction"]
+    return {**f, "explanation": (
+        f"{where}: {finding_line(f)}. It would cut the held-out error on {where} by {red:.0f}%, but "
+        f"re-identifying the rigid body explains the same torque, so it is not reported: the two differ only in "
+        f"how the torque varies over the robot's poses; a log that moves {where} over a wider range, or the other "
+        f"joints through more poses, tells them apart."),
+        "withheld_because": (
+            f"a stand-in for the rigid body: not chosen once the body is re-identified; the body itself gains "
+            f"{reid['held_out_gain']:.1%} of the held-out error (material, >= {reid['min_gain']:g}) without being "
+            f"significant (p {reid['p_value']:.2g} against {reid['level']:.2g}), so neither is reported")}
+
+
 def mode_switch_finding(ms, ctx, *, alpha: float, n_folds: int) -> dict:
     """The ``mode_switch`` finding of a :class:`mmgp.diagnosis.modes.ModeSwitch`."""
     eff, d, pm = ms.effect, ms.test["d"], ms.per_mode
