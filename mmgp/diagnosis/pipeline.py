@@ -77,7 +77,8 @@ _SELECTION = ForwardCVSelector()   # the selection's settings are declared there
 #: ``done`` = the stage's index, ``total`` = their number); a stage a log does not need is skipped
 STAGES = ("reading the log", "estimating derivatives, building the effect library",
           "multimodal learner (pushes)", "fitting the effects, re-identifying the rigid body", "separating pushes",
-          "selecting effects", "mode switch", "selecting effects again, with the modes",
+          "selecting effects", "selecting effects again, with the rigid body (its stand-ins)", "mode switch",
+          "selecting effects again, with the modes",
           "held-out errors per stage", "GP on what the physics leaves")
 
 
@@ -371,6 +372,7 @@ class Diagnoser(BaseEstimator):
         rb = rigid_body(prob.library)
         if not rb or not reid or reid["re_identified"] or reid["held_out_gain"] < self.reid_min_gain:
             return [], []
+        _stage("selecting effects again, with the rigid body (its stand-ins)")
         with_body = self._select(prob, lib, use, start + rb)[0]
         dropped = [e for e in phys.chosen if e not in start and e.static and e not in with_body.chosen]
         stand_ins = [e for e in dropped if not _in_body_span(prob, phys, e)]
