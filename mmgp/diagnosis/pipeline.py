@@ -35,9 +35,9 @@ windows ``mmgp train`` uses). The steps (``mmgp.diagnosis.stages``):
    ``selection.gain_p``) at family-wise level ``alpha`` (Bonferroni over the
    candidates tried at that step); physical constraints must hold; nested effects (load
    dependence in Coulomb friction) are only tried as extensions. No magnitude threshold.
-   Where re-identifying the rigid body cuts a material share of what the library leaves without
-   being significant, a static effect (a spring, an offset) that the body makes unnecessary is
-   its stand-in: withheld, not reported (``Diagnoser._body_stand_ins``).
+   Where the rigid body is not re-identified, a static effect (a spring, an offset) that is not
+   chosen once the body is in the model cannot be told from the body's gravity error: withheld,
+   not reported (``Diagnoser._body_stand_ins``).
 4. *Model*: refit the nominal model plus the chosen effects (non-negative least squares), then a
    GP (``mmgp.gp.exact.ExactGP``) on what is left; held-out normalised MSE per joint at three
    stages. Mode switches: one vs two payload modes per link (sticky two-state switching
@@ -354,28 +354,29 @@ class Diagnoser(BaseEstimator):
         return coupling.motor_rest_masks(prob, found, rest_factor=self.rest_factor), found, ev
 
     def _body_stand_ins(self, prob, lib, use, start, phys, reid: dict) -> tuple[list, list]:
-        """The effects of ``phys`` (chosen without the rigid body) that stand in for the body,
-        and their findings, withheld with the reason. Where the body's re-identification cuts a
-        material share (>= ``reid_min_gain``) of what the library leaves without being
-        significant, the body is not taken, and an effect whose torque at rest is a function of
-        the positions (``Effect.static``: a spring, an offset) may be taking the body's gravity
-        error. The effects are chosen once more with the body in the model: a static effect then
-        no longer chosen is the body's stand-in, left out of the selection and withheld, unless
-        its columns lie in the span of the body's base columns (then it is one of the body's own
-        base parameters under a physical name, the same torque whichever names it). Effects of
-        motion are kept: friction dissipates, which no rigid body does, and a geared joint's
-        rotor inertia is expected beside the body (benchmarks/README, "a static effect that
-        stands in for the body is withheld"). Returns (effects the selection leaves out, their
-        findings withheld)."""
+        """Which static effects stand in for the rigid body, and the findings of those ``phys``
+        (chosen without the body) holds, withheld with the reason. Where the body is not
+        re-identified, an effect whose torque at rest is a function of the positions
+        (``Effect.static``: a spring, an offset) may be taking the body's gravity error: the
+        effects are chosen once more with the body in the model, and a static effect that is then
+        not chosen cannot be told from the body by this log: it is no candidate (the selection
+        leaves it out) and, where it was chosen, its finding is withheld. Exempt: an effect whose
+        columns lie in the span of the body's base columns (one of the body's own base parameters
+        under a physical name, the same torque whichever names it). Effects of motion are kept:
+        friction dissipates, which no rigid body does, and a geared joint's rotor inertia is
+        expected beside the body (benchmarks/README, "a static effect that stands in for the body
+        is withheld"). Returns (effects the selection leaves out, the withheld findings)."""
         from .reidentify import rigid_body
 
         rb = rigid_body(prob.library)
-        if not rb or not reid or reid["re_identified"] or reid["held_out_gain"] < self.reid_min_gain:
+        if not rb or not reid or reid["re_identified"]:
             return [], []
         _stage("selecting effects again, with the rigid body (its stand-ins)")
         with_body = self._select(prob, lib, use, start + rb)[0]
-        dropped = [e for e in phys.chosen if e not in start and e.static and e not in with_body.chosen]
-        stand_ins = [e for e in dropped if not _in_body_span(prob, phys, e)]
+        static = [e for e in st.candidates(prob, start) if e.static and e not in with_body.chosen]
+        apart = _outside_body_span(prob, phys, static)
+        static = [e for e, out in zip(static, apart) if out]
+        stand_ins = [e for e in phys.chosen if e in static]
         reid["stand_ins"] = [f"{e.name}@{next(iter(e.where(phys.ctx).values()))}" for e in stand_ins]
         if not stand_ins:
             return [], []
@@ -384,7 +385,7 @@ class Diagnoser(BaseEstimator):
         withheld = [stand_in_finding(f, reid) for f in findings
                     if any(f["effect"] == e.name and all(f.get(k) == v for k, v in e.where(ctx).items())
                            for e in stand_ins)]
-        return stand_ins, withheld
+        return static, withheld
 
     def _select(self, prob, lib, use, start, exclude=()):
         """Forward selection from ``start`` on samples ``use`` among the candidates but
@@ -519,18 +520,21 @@ def _disturbance(pushes, t: np.ndarray) -> dict:
     return disturbance_finding(pushes.disturbed, spans_of(pushes.disturbed, t), evidence)
 
 
-def _in_body_span(prob, phys, effect) -> bool:
-    """Whether ``effect``'s columns lie in the span of the rigid body's base columns on the
-    log's valid equations (a least-squares fit by them leaves under ``SPAN_RTOL`` of each column's
-    norm): the two are then one parameter of the log's torque."""
+def _outside_body_span(prob, phys, effects) -> list[bool]:
+    """Per effect, whether its columns leave the span of the rigid body's base columns on the
+    log's valid equations (a least-squares fit by them leaves more than ``SPAN_RTOL`` of some
+    column's norm); inside it, the effect and the body are one parameter of the log's torque."""
+    if not effects:
+        return []
     index = {a: i for i, a in enumerate(phys.keys)}
     rb = [i for i, a in enumerate(phys.keys) if a[0] == "rb"]
+    cols = [[index[a] for a in e.atoms()] for e in effects]
     valid = prob.M > 0
-    B = phys.A[:, :, rb][valid]
-    E = phys.A[:, :, [index[a] for a in effect.atoms()]][valid]
-    coef = np.linalg.lstsq(B, E, rcond=None)[0]
-    left = np.linalg.norm(E - B @ coef, axis=0)
-    return bool(np.all(left <= SPAN_RTOL * np.maximum(np.linalg.norm(E, axis=0), 1e-300)))
+    B, E = phys.A[:, :, rb][valid], phys.A[:, :, sum(cols, [])][valid]
+    left = np.linalg.norm(E - B @ np.linalg.lstsq(B, E, rcond=None)[0], axis=0)
+    out = left > SPAN_RTOL * np.maximum(np.linalg.norm(E, axis=0), 1e-300)
+    bounds = np.cumsum([0] + [len(c) for c in cols])
+    return [bool(out[a:b].any()) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def _checked(res: DiagnosisResult, log, robot) -> DiagnosisResult:

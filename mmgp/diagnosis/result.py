@@ -39,9 +39,9 @@ def stand_in_finding(f: dict, reid: dict) -> dict:
         f"how the torque varies over the robot's poses; a log that moves {where} over a wider range, or the other "
         f"joints through more poses, tells them apart."),
         "withheld_because": (
-            f"a stand-in for the rigid body: not chosen once the body is re-identified; the body itself gains "
-            f"{reid['held_out_gain']:.1%} of the held-out error (material, >= {reid['min_gain']:g}) without being "
-            f"significant (p {reid['p_value']:.2g} against {reid['level']:.2g}), so neither is reported")}
+            f"a stand-in for the rigid body: not chosen once the body is re-identified; the body itself is not "
+            f"significant (held-out gain {reid['held_out_gain']:.1%}, p {reid['p_value']:.2g} against "
+            f"{reid['level']:.2g}), so neither is reported")}
 
 
 def mode_switch_finding(ms, ctx, *, alpha: float, n_folds: int) -> dict:
