@@ -72,38 +72,20 @@ def draw_set(seed: int = SET_SEED, n: int = N_CASES) -> list[dict]:
     return cases
 
 
-def _edit_link(text: str, link: str, added_mass: float, com_shift: float) -> str:
-    block = re.search(rf'<link name="{link}">.*?</link>', text, re.S)
-    inertial = re.search(r"<inertial>.*?</inertial>", block.group(0), re.S)
-    body = inertial.group(0)
-    m = re.search(r'<mass value="([^"]+)"', body)
-    body = body[:m.start(1)] + repr(float(m.group(1)) + added_mass) + body[m.end(1):]
-    o = re.search(r'<origin[^>]*xyz="([^"]+)"', body)
-    x, y, z = (float(v) for v in o.group(1).split())
-    body = body[:o.start(1)] + f"{x + com_shift} {y} {z}" + body[o.end(1):]
-    start = block.start() + inertial.start()
-    return text[:start] + body + text[start + len(inertial.group(0)):]
-
-
-def _edit_range(text: str, joint: str, lower: float, upper: float) -> str:
-    m = re.search(rf'<joint name="{joint}".*?<limit[^>]*lower="([^"]+)"[^>]*upper="([^"]+)"', text, re.S)
-    return text[:m.start(1)] + repr(lower) + text[m.end(1):m.start(2)] + repr(upper) + text[m.end(2):]
-
-
 def make_case(case: dict, folder: Path) -> tuple[Path, Path, list]:
     """Simulate ``case`` in MuJoCo; returns (log parquet, nominal URDF, truth)."""
     from mmgp.sim import concealed as C
-    from mmgp.sim.mjcf import robot_urdf_path
+    from mmgp.sim.mjcf import robot_urdf_path, urdf_with_joint_range, urdf_with_link_error
 
     joints = ROBOTS[case["robot"]][0]
     text = open(robot_urdf_path(case["robot"])).read()
     # the Panda's fingers fixed: the log carries the arm's joints only
     text = re.sub(r'(<joint name="panda_finger_joint\d" type=")prismatic', r"\1fixed", text)
     if case["range"]:
-        text = _edit_range(text, joints[1], *case["range"])
+        text = urdf_with_joint_range(text, joints[1], *case["range"])
     nominal, true = folder / "nominal.urdf", folder / "true.urdf"
     nominal.write_text(text)
-    true.write_text(_edit_link(text, case["link"], case["added_mass"], case["com_shift"]))
+    true.write_text(urdf_with_link_error(text, case["link"], case["added_mass"], case["com_shift"]))
     effects = [case["effect"]] if case["effect"] else []
     rec, truth = C.make_case({"name": f"stand_in_{case['id']}", "robot": str(true), "effects": effects,
                               "n_samples": N_SAMPLES}, seed=case["sim_seed"])

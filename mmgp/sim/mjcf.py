@@ -42,3 +42,29 @@ def set_payload(model, mass: float, *, radius: float = 0.05) -> None:
         raise ValueError("model has no 'payload' body (build it with payload=...)")
     model.body_mass[bid] = max(float(mass), 1e-9)
     model.body_inertia[bid] = 0.4 * float(mass) * radius ** 2 if mass > 0 else 1e-12
+
+
+def urdf_with_link_error(text: str, link: str, added_mass: float, com_shift: float) -> str:
+    """URDF ``text`` with ``link`` ``added_mass`` kg heavier and its centre of mass ``com_shift`` m
+    further along the link's x: a robot its nominal URDF is wrong about (inertia tensor kept)."""
+    import re
+
+    block = re.search(rf'<link name="{link}">.*?</link>', text, re.S)
+    inertial = re.search(r"<inertial>.*?</inertial>", block.group(0), re.S)
+    body = inertial.group(0)
+    m = re.search(r'<mass value="([^"]+)"', body)
+    body = body[:m.start(1)] + repr(float(m.group(1)) + added_mass) + body[m.end(1):]
+    o = re.search(r'<origin[^>]*xyz="([^"]+)"', body)
+    x, y, z = (float(v) for v in o.group(1).split())
+    body = body[:o.start(1)] + f"{x + com_shift} {y} {z}" + body[o.end(1):]
+    start = block.start() + inertial.start()
+    return text[:start] + body + text[start + len(inertial.group(0)):]
+
+
+def urdf_with_joint_range(text: str, joint: str, lower: float, upper: float) -> str:
+    """URDF ``text`` with ``joint``'s position limits set to [``lower``, ``upper``] rad (the
+    recordings' references stay within a joint's limits)."""
+    import re
+
+    m = re.search(rf'<joint name="{joint}".*?<limit[^>]*lower="([^"]+)"[^>]*upper="([^"]+)"', text, re.S)
+    return text[:m.start(1)] + repr(lower) + text[m.end(1):m.start(2)] + repr(upper) + text[m.end(2):]
