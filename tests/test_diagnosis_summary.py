@@ -46,6 +46,18 @@ def test_the_summary_opens_the_report_with_numbers_units_and_intervals():
     assert len(gp) == 1 and gp[0].startswith("On j3 (1.81 vs 0.0019) ")
 
 
+def test_a_withheld_finding_is_marked_on_its_joints_row():
+    import dataclasses
+
+    offset = {"effect": "torque_offset", "joint": "j2", "params": {"offset": -3.5},
+              "evidence": {"params_interval": {"offset": [-4.0, -3.1]}}, "explanation": "j2: an offset.",
+              "withheld_because": "a stand-in for the rigid body"}
+    md = dataclasses.replace(_result(), withheld=[offset]).report_markdown()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| j2 |"))
+    assert row == "| j2 | 0.02 -> 0.02 | withheld: a torque-sensor offset: offset -3.5 N*m (-4 to -3.1) |"
+    assert "- j2: an offset. (a stand-in for the rigid body)" in md
+
+
 def test_findings_are_grouped_by_joint_in_the_urdf_order():
     md = _result().report_markdown()
     body = md[md.index("## Findings by joint"):md.index("## Held-out normalised MSE")]

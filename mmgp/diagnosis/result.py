@@ -133,7 +133,7 @@ class DiagnosisResult:
 
     def report_markdown(self) -> str:
         effects = [f for f in self.findings if f["effect"] not in WHOLE_LOG]
-        lines = ["# Sim-vs-real diagnosis", ""] + summary_markdown(self.findings, self.fit, self.joint_names)
+        lines = ["# Sim-vs-real diagnosis", ""] + summary_markdown(self.findings, self.fit, self.joint_names, self.withheld)
         if self.warnings:
             lines += ["## Warnings", ""] + [f"- **{w}**" for w in self.warnings] + [""]
         if self.withheld:
@@ -212,7 +212,7 @@ class DiagnosisResult:
                                 "what was found on each joint." + (" " + sentence if sentence else ""))
         page.table(["joint"] + [label for _, label in COLUMNS] + ["found"],
                    [[r["joint"]] + [r[s] for s, _ in COLUMNS] + ["; ".join(r["found"]) or "nothing"]
-                    for r in joint_rows(self.findings, self.fit, self.joint_names)], kind="summary")
+                    for r in joint_rows(self.findings, self.fit, self.joint_names, self.withheld)], kind="summary")
         if self.warnings:
             page.section("Warnings", "What limits the numbers below:")
             page.table(["warning"], [[w] for w in self.warnings], kind="warnings")

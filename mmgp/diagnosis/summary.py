@@ -63,13 +63,15 @@ def _affected(f: dict, joint_names: list) -> list[str]:
     return out + ([other] if other in joint_names and other not in out else [])
 
 
-def joint_rows(findings: list, fit: dict, joint_names: list) -> list[dict]:
+def joint_rows(findings: list, fit: dict, joint_names: list, withheld: list = ()) -> list[dict]:
     """Per joint: ``joint``, the held-out nMSE per stage of :data:`COLUMNS` (None where absent)
-    and ``found`` (its findings' lines)."""
+    and ``found`` (its findings' lines, then its ``withheld`` findings' marked "withheld": the
+    engineer who reads the table alone still sees what was left out there)."""
     rows = []
     for j in joint_names:
         row = {"joint": j, **{s: fit.get(s, {}).get("nmse", {}).get(j) for s, _ in COLUMNS}}
         row["found"] = [finding_line(f) for f in findings if j in _affected(f, joint_names)]
+        row["found"] += [f"withheld: {finding_line(f)}" for f in withheld if j in _affected(f, joint_names)]
         rows.append(row)
     return rows
 
@@ -108,12 +110,12 @@ def gp_sentence(fit: dict, joint_names: list) -> str | None:
             "with the found physics for those joints.")
 
 
-def summary_markdown(findings: list, fit: dict, joint_names: list) -> list[str]:
-    """The report's opening section, as Markdown lines."""
+def summary_markdown(findings: list, fit: dict, joint_names: list, withheld: list = ()) -> list[str]:
+    """The report's opening section, as Markdown lines (``withheld``: :func:`joint_rows`)."""
     lines = ["## Summary", "", "Held-out normalised MSE per joint (time-block cross-validation; 0 is perfect, "
              "1 is the torque's own mean), nominal -> with the found physics, and what was found on each joint:",
              "", "| joint | " + " -> ".join(label for _, label in COLUMNS) + " | found |", "|---|---|---|"]
-    for r in joint_rows(findings, fit, joint_names):
+    for r in joint_rows(findings, fit, joint_names, withheld):
         err = " -> ".join("-" if r[s] is None else _number(r[s]) for s, _ in COLUMNS)
         lines.append(f"| {r['joint']} | {err} | {'; '.join(r['found']) or 'nothing'} |")
     other = elsewhere(findings, joint_names)
