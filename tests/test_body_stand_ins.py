@@ -9,8 +9,6 @@ the same robot must still be found. Which columns lie in the body's span is chec
 base-parameter regrouping of a serial arm (Khalil and Dombre: the first joint's rotor inertia
 joins the first link's inertia about its axis; a spring's column is linear in its joint angle,
 which no inertial parameter's is)."""
-import re
-
 import numpy as np
 import pytest
 
@@ -20,14 +18,13 @@ from mmgp.diagnosis.pipeline import _outside_body_span
 from mmgp.physics.effects import Armature, EncoderOffset, JointSpring
 from mmgp.physics.robot import RobotModel
 from mmgp.sim import concealed as C
+from mmgp.sim.mjcf import urdf_with_joint_range
 
 from test_reidentify_body import JOINTS, _urdfs
 
 
 def _narrow_shoulder(path, lower=-0.3, upper=0.5):
-    text = path.read_text()
-    m = re.search(r'<joint name="panda_joint2".*?<limit[^>]*lower="([^"]+)"[^>]*upper="([^"]+)"', text, re.S)
-    path.write_text(text[:m.start(1)] + repr(lower) + text[m.end(1):m.start(2)] + repr(upper) + text[m.end(2):])
+    path.write_text(urdf_with_joint_range(path.read_text(), "panda_joint2", lower, upper))
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +74,7 @@ def test_a_stand_in_is_withheld_where_the_body_itself_gains_nothing(tmp_path):
     (its 30-odd parameters extrapolate worse than the library), yet with the body free the
     shoulder's offsets are not chosen: no static finding on the shoulder is reported (the
     previous code named an encoder and a torque offset there; the truth has neither)."""
-    from mmgp.sim.mjcf import robot_urdf_path, urdf_with_joint_range, urdf_with_link_error
+    from mmgp.sim.mjcf import robot_urdf_path, urdf_with_link_error
 
     joints = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
               "wrist_3_joint"]

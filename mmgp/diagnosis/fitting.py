@@ -284,10 +284,11 @@ def _com_statement(finding: dict, unresolved: list) -> dict:
     return finding
 
 
-def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | None = None) -> list[dict]:
-    """One finding per chosen effect that no other chosen effect contains, with its held-out
-    evidence, standard deviations and block-bootstrap intervals (and, given each joint torque's
-    standard deviation ``torque_sd`` (n,), its ``torque_share``)."""
+def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | None = None,
+                    only=None) -> list[dict]:
+    """One finding per chosen effect (of ``only``, when given) that no other chosen effect
+    contains, with its held-out evidence, standard deviations and block-bootstrap intervals (and,
+    given each joint torque's standard deviation ``torque_sd`` (n,), its ``torque_share``)."""
     from .result import effect_finding
 
     err_phys = phys.grams.cv_errors(phys.S, phys.w)
@@ -297,6 +298,8 @@ def effect_findings(phys: PhysicsFit, *, alpha: float, torque_sd: np.ndarray | N
     findings = []
     for e in phys.chosen:
         if not e.name or any(o is not e and o.index == e.index and e.name in o.supersedes for o in phys.chosen):
+            continue
+        if only is not None and e not in only:
             continue
         ev, jmain = _evidence(phys, e, err_phys, alpha)
         if torque_sd is not None:

@@ -380,12 +380,9 @@ class Diagnoser(BaseEstimator):
         reid["stand_ins"] = [f"{e.name}@{next(iter(e.where(phys.ctx).values()))}" for e in stand_ins]
         if not stand_ins:
             return [], []
-        findings = effect_findings(phys, alpha=self.alpha, torque_sd=np.sqrt(st.torque_variance(prob, use)))
-        ctx = phys.ctx
-        withheld = [stand_in_finding(f, reid) for f in findings
-                    if any(f["effect"] == e.name and all(f.get(k) == v for k, v in e.where(ctx).items())
-                           for e in stand_ins)]
-        return static, withheld
+        sd = np.sqrt(st.torque_variance(prob, use))
+        return static, [stand_in_finding(f, reid)
+                        for f in effect_findings(phys, alpha=self.alpha, torque_sd=sd, only=stand_ins)]
 
     def _select(self, prob, lib, use, start, exclude=()):
         """Forward selection from ``start`` on samples ``use`` among the candidates but
